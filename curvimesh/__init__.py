@@ -1,0 +1,1 @@
+"""curvimesh: curvilinear (P2) unit mesh adaptation."""

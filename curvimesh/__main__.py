@@ -1,0 +1,3 @@
+from curvimesh.cli import main
+
+main()
