@@ -1,2 +1,328 @@
-def main():
-    pass
+"""The ``curvimesh`` command line (SPEC section 1): thin commands over the library.
+
+Each command reads its inputs, makes one library call and writes its output
+atomically. Errors of curvimesh's own types become one line on stderr and
+the exit code of the error (2 bad input, 1 failed work); a traceback only
+with ``-v``. Ctrl-C exits with 130 and SIGTERM with 143, leaving no output.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import signal
+import sys
+import time
+import traceback
+from collections.abc import Callable
+from typing import Any
+
+import click
+import numpy as np
+
+from curvimesh import adapt as pipeline
+from curvimesh.errors import CurvimeshError, InputError
+from curvimesh.geodesic import parabola_length, shoot, shortest_parabola
+from curvimesh.io import FORMATS, atomic_write_text, read_mesh, write_mesh
+from curvimesh.metric import (
+    UNIT_TRIANGLE_AREA,
+    MetricField,
+    density_integral,
+    load_metric,
+)
+from curvimesh.report import format_report, mesh_report
+
+
+class _Terminated(BaseException):
+    """Raised by the SIGTERM handler so that cleanup runs as for Ctrl-C."""
+
+
+def _on_sigterm(signum, frame):  # pragma: no cover - exercised through a subprocess
+    raise _Terminated()
+
+
+class Context:
+    """What every command shares: verbosity."""
+
+    def __init__(self) -> None:
+        self.verbose = False
+        self.quiet = False
+
+    def progress(self, msg: str) -> None:
+        if not self.quiet and (self.verbose or sys.stderr.isatty()):
+            click.echo(f"curvimesh: {msg}", err=True)
+
+
+def _fail(msg: str, code: int) -> None:
+    click.echo(f"curvimesh: error: {msg}", err=True)
+    sys.exit(code)
+
+
+def command(fn: Callable) -> Callable:
+    """Run a command body, turning our errors into one line and an exit code."""
+
+    @click.option("-v", "--verbose", is_flag=True, help="Progress, and tracebacks on errors.")
+    @click.option("-q", "--quiet", is_flag=True, help="No progress messages.")
+    @functools.wraps(fn)
+    def wrapper(*args: Any, verbose: bool, quiet: bool, **kwargs: Any) -> None:
+        ctx = Context()
+        ctx.verbose, ctx.quiet = verbose, quiet
+        old = signal.signal(signal.SIGTERM, _on_sigterm)
+        try:
+            fn(ctx, *args, **kwargs)
+        except CurvimeshError as exc:
+            if verbose:
+                traceback.print_exc()
+            _fail(str(exc), exc.exit_code)
+        except KeyboardInterrupt:
+            _fail("interrupted", 130)
+        except _Terminated:
+            _fail("terminated", 143)
+        except (MemoryError, RecursionError) as exc:
+            if verbose:
+                traceback.print_exc()
+            _fail(f"{type(exc).__name__}: the work is too large", 1)
+        finally:
+            signal.signal(signal.SIGTERM, old)
+
+    return wrapper
+
+
+def metric_option(required: bool = True) -> Callable:
+    return click.option(
+        "--metric",
+        "metric_path",
+        required=required,
+        type=click.Path(dir_okay=False),
+        help="Metric YAML file (SPEC section 2).",
+    )
+
+
+def output_option(fn: Callable) -> Callable:
+    fn = click.option(
+        "--format",
+        "fmt",
+        type=click.Choice(sorted(FORMATS)),
+        default="gmsh22",
+        show_default=True,
+        help="Mesh file format.",
+    )(fn)
+    return click.option(
+        "-o", "--output", required=True, type=click.Path(), help="Output mesh (- for stdout)."
+    )(fn)
+
+
+def input_argument(fn: Callable) -> Callable:
+    return click.argument("mesh_path", metavar="MESH", type=click.Path())(fn)
+
+
+def seed_option(fn: Callable) -> Callable:
+    return click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")(fn)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="curvimesh")
+def main() -> None:
+    """Curvilinear (P2) unit meshes adapted to a Riemannian metric field.
+
+    Method: Zhang, Johnen & Remacle, "Curvilinear mesh adaptation".
+    """
+
+
+def _read(path: str, fld: MetricField | None = None):
+    return read_mesh(path, box=fld.box if fld is not None else None)
+
+
+@main.command("check-metric")
+@click.argument("metric_path", metavar="METRIC", type=click.Path(dir_okay=False))
+@command
+def check_metric(ctx: Context, metric_path: str) -> None:
+    """Parse and validate a metric file, sample it and print a summary."""
+    fld = load_metric(metric_path)
+    pts = fld.sample_points(129)
+    fld.validate(pts)
+    g = fld.tensor(pts)
+    w = np.linalg.eigvalsh(g)
+    sizes = 1.0 / np.sqrt(w)
+    aniso = sizes[:, 1] / sizes[:, 0]
+    area = density_integral(fld)
+    ideal = area / UNIT_TRIANGLE_AREA
+    xmin, ymin, xmax, ymax = fld.box
+    lines = [
+        f"metric      {fld.name} ({metric_path})",
+        f"domain      [{xmin:g}, {xmax:g}] x [{ymin:g}, {ymax:g}]",
+        f"items       {len(fld.components)}",
+        f"size        {sizes.min():.6g} .. {sizes.max():.6g}",
+        f"anisotropy  {aniso.min():.6g} .. {aniso.max():.6g}",
+        f"metric area {area:.6g}",
+        f"ideal triangles {ideal:.1f} (about {pipeline.estimated_vertices(area):.0f} vertices)",
+    ]
+    click.echo("\n".join(lines))
+
+
+@main.command()
+@metric_option()
+@click.option("--from", "start", nargs=2, type=float, required=True, help="Start point X Y.")
+@click.option("--to", "end", nargs=2, type=float, default=None, help="End point X Y.")
+@click.option("--angle", type=float, default=None, help="Shooting direction (radians).")
+@click.option("--length", type=float, default=1.0, show_default=True, help="Metric length.")
+@command
+def geodesic(ctx: Context, metric_path, start, end, angle, length) -> None:
+    """Shortest parabola between two points, or a geodesic shot from a point (JSON)."""
+    if (end is None) == (angle is None):
+        raise InputError("geodesic: give exactly one of --to X Y or --angle A")
+    fld = load_metric(metric_path)
+    x0 = np.array([start], dtype=float)
+    if end is not None:
+        x1 = np.array([end], dtype=float)
+        if np.allclose(x0, x1):
+            raise InputError("geodesic: --from and --to are the same point")
+        fld.validate(np.concatenate([x0, x1]))
+        par = shortest_parabola(fld, x0, x1)
+        straight = parabola_length(fld, x0, x1)
+        out = {
+            "length": float(par.length[0]),
+            "midpoint": [float(v) for v in par.mid[0]],
+            "straight_length": float(straight[0]),
+        }
+    else:
+        if not (math.isfinite(length) and length > 0):
+            raise InputError("geodesic: --length must be positive")
+        fld.validate(x0)
+        shot = shoot(fld, x0, np.array([[math.cos(angle), math.sin(angle)]]), length)
+        if not shot.ok[0]:
+            raise InputError("geodesic: the geodesic leaves the region where the metric is defined")
+        out = {"end": [float(v) for v in shot.end[0]], "length": float(length)}
+    click.echo(json.dumps(out))
+
+
+@main.command()
+@metric_option()
+@output_option
+@seed_option
+@click.option(
+    "--max-vertices",
+    type=click.IntRange(min=1),
+    default=pipeline.MAX_VERTICES,
+    show_default=True,
+    help="Fail fast above this estimated vertex count.",
+)
+@command
+def sample(ctx: Context, metric_path, output, fmt, seed, max_vertices) -> None:
+    """Stage 1: sample points (Algorithm 1); writes nodes with vertex cells."""
+    fld = load_metric(metric_path)
+    opt = pipeline.AdaptOptions(seed=seed, max_vertices=max_vertices)
+    pipeline.check_size(fld, max_vertices)
+    cloud = pipeline.sample(fld, opt)
+    ctx.progress(f"sample: {len(cloud.points)} points")
+    write_mesh(output, cloud, fmt=fmt)
+
+
+@main.command()
+@input_argument
+@metric_option(required=False)
+@output_option
+@command
+def triangulate(ctx: Context, mesh_path, metric_path, output, fmt) -> None:
+    """Stage 2: Delaunay triangulation of the points; writes triangle (P1) cells."""
+    fld = load_metric(metric_path) if metric_path else None
+    cloud = _read(mesh_path, fld)
+    write_mesh(output, pipeline.triangulate(cloud), fmt=fmt)
+
+
+@main.command()
+@input_argument
+@metric_option()
+@output_option
+@command
+def curve(ctx: Context, mesh_path, metric_path, output, fmt) -> None:
+    """Stage 3: P2 nodes on geodesic parabolas, backtracked to validity."""
+    fld = load_metric(metric_path)
+    mesh = _require_triangles(_read(mesh_path, fld), mesh_path)
+    write_mesh(output, pipeline.curve(fld, mesh), fmt=fmt)
+
+
+@main.command()
+@input_argument
+@metric_option()
+@output_option
+@command
+def swap(ctx: Context, mesh_path, metric_path, output, fmt) -> None:
+    """Stage 4: curvilinear edge swaps driven by quality (4)."""
+    fld = load_metric(metric_path)
+    mesh = _require_triangles(_read(mesh_path, fld), mesh_path)
+    if mesh.order != 2:
+        raise InputError(f"{mesh_path}: swap needs a P2 (triangle6) mesh; run curve first")
+    res = pipeline.swap(fld, mesh)
+    ctx.progress(f"swap: {res.swaps} swaps in {res.rounds} rounds")
+    write_mesh(output, res.mesh, fmt=fmt)
+
+
+def _require_triangles(mesh, path: str):
+    if len(mesh.triangles) == 0:
+        raise InputError(f"{path}: the mesh has no triangles")
+    return mesh
+
+
+@main.command()
+@metric_option()
+@output_option
+@seed_option
+@click.option(
+    "--stats",
+    "stats_path",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write the report JSON with swaps and seconds per stage.",
+)
+@click.option(
+    "--max-vertices",
+    type=click.IntRange(min=1),
+    default=pipeline.MAX_VERTICES,
+    show_default=True,
+    help="Fail fast above this estimated vertex count.",
+)
+@command
+def adapt(ctx: Context, metric_path, output, fmt, seed, stats_path, max_vertices) -> None:
+    """All stages: sample | triangulate | curve | swap, in one process."""
+    fld = load_metric(metric_path)
+    opt = pipeline.AdaptOptions(seed=seed, max_vertices=max_vertices)
+    t0 = time.perf_counter()
+    res = pipeline.adapt(fld, opt, progress=ctx.progress)
+    total = time.perf_counter() - t0
+    stats = None
+    if stats_path:
+        stats = mesh_report(fld, res.mesh, metric_area=None)
+        stats["swaps"] = res.swaps
+        stats["seconds"] = {
+            **{k: round(v, 4) for k, v in res.seconds.items()},
+            "total": round(total, 4),
+        }
+    write_mesh(output, res.mesh, fmt=fmt)
+    if stats is not None:
+        atomic_write_text(stats_path, json.dumps(stats, indent=2) + "\n")
+
+
+@main.command()
+@input_argument
+@metric_option()
+@click.option("--json", "as_json", is_flag=True, help="Print the SPEC section 4 JSON object.")
+@click.option(
+    "--plot",
+    "plot_path",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Draw the mesh and histograms into this image.",
+)
+@command
+def report(ctx: Context, mesh_path, metric_path, as_json, plot_path) -> None:
+    """Edge lengths, qualities and validity of a mesh in a metric."""
+    fld = load_metric(metric_path)
+    mesh = _require_triangles(_read(mesh_path, fld), mesh_path)
+    rep = mesh_report(fld, mesh)
+    if plot_path:
+        from curvimesh.plot import plot_mesh_report
+
+        plot_mesh_report(fld, mesh, plot_path)
+    click.echo(json.dumps(rep, indent=2) if as_json else format_report(rep))

@@ -1,0 +1,120 @@
+"""The adapt pipeline: sample | triangulate | curve | swap, as library calls.
+
+Every stage takes and returns a :class:`~curvimesh.mesh.Mesh` (a point cloud
+for ``sample``), so that the CLI can run them alone, chained through files or
+pipes, or all at once in :func:`adapt`, with the same result byte for byte.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from curvimesh import curve as _curve
+from curvimesh import swap as _swap
+from curvimesh.boundary import discretize_box
+from curvimesh.errors import InputError
+from curvimesh.mesh import Mesh
+from curvimesh.metric import UNIT_TRIANGLE_AREA, MetricField, density_integral
+from curvimesh.sampling import SamplingOptions, sample_points
+from curvimesh.triangulate import delaunay
+
+#: Default bound on the vertex count (SPEC: ``--max-vertices``).
+MAX_VERTICES = 2_000_000
+
+Progress = Callable[[str], None]
+
+
+def _quiet(_: str) -> None:
+    return None
+
+
+@dataclass(frozen=True)
+class AdaptOptions:
+    """Options of the whole pipeline."""
+
+    seed: int = 0
+    sampling: SamplingOptions = field(default_factory=SamplingOptions)
+    max_vertices: int = MAX_VERTICES
+    max_swap_rounds: int = 200
+
+
+def estimated_vertices(metric_area: float) -> float:
+    """Vertices of an ideal unit mesh: half its triangle count, metric_area / (√3/4) / 2."""
+    return metric_area / UNIT_TRIANGLE_AREA / 2.0
+
+
+def check_size(fld: MetricField, max_vertices: int) -> float:
+    """Fail fast when the ideal mesh would exceed ``max_vertices``; return the metric area."""
+    area = density_integral(fld, cells=64)
+    est = estimated_vertices(area)
+    if est > max_vertices:
+        raise InputError(
+            f"{fld.source}: the metric asks for about {est:,.0f} vertices, more than "
+            f"--max-vertices {max_vertices:,}"
+        )
+    return area
+
+
+def sample(fld: MetricField, options: AdaptOptions | None = None) -> Mesh:
+    """Stage 1: boundary discretisation and Algorithm 1; a point cloud on the box."""
+    opt = options or AdaptOptions()
+    boundary = discretize_box(fld, target=opt.sampling.spacing)
+    pts = sample_points(fld, boundary, opt.sampling, seed=opt.seed)
+    return Mesh(pts, np.zeros((0, 3), dtype=np.int64), fld.box)
+
+
+def triangulate(points: Mesh) -> Mesh:
+    """Stage 2: Delaunay triangulation of the nodes of a point cloud (or of any mesh)."""
+    return delaunay(np.asarray(points.points), box=points.box)
+
+
+def curve(fld: MetricField, mesh: Mesh) -> Mesh:
+    """Stage 3: P2 edge nodes on geodesic parabolas, backtracked to validity."""
+    return _curve.curve(fld, mesh)
+
+
+def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> _swap.SwapResult:
+    """Stage 4: curvilinear edge swaps driven by quality (4)."""
+    opt = options or AdaptOptions()
+    return _swap.swap(fld, mesh, max_rounds=opt.max_swap_rounds)
+
+
+@dataclass(frozen=True)
+class AdaptResult:
+    """The adapted mesh, the swap count and the seconds of every stage."""
+
+    mesh: Mesh
+    swaps: int
+    seconds: dict[str, float]
+    metric_area: float
+
+
+def adapt(
+    fld: MetricField, options: AdaptOptions | None = None, *, progress: Progress = _quiet
+) -> AdaptResult:
+    """All stages in one process."""
+    opt = options or AdaptOptions()
+    seconds: dict[str, float] = {}
+    t = time.perf_counter()
+    area = check_size(fld, opt.max_vertices)
+    progress(f"metric area {area:.1f}: about {estimated_vertices(area):,.0f} vertices")
+    cloud = sample(fld, opt)
+    seconds["sample"] = time.perf_counter() - t
+    progress(f"sample: {len(cloud.points)} points ({seconds['sample']:.1f} s)")
+    t = time.perf_counter()
+    p1 = triangulate(cloud)
+    seconds["triangulate"] = time.perf_counter() - t
+    progress(f"triangulate: {len(p1.triangles)} triangles ({seconds['triangulate']:.1f} s)")
+    t = time.perf_counter()
+    p2 = curve(fld, p1)
+    seconds["curve"] = time.perf_counter() - t
+    progress(f"curve: done ({seconds['curve']:.1f} s)")
+    t = time.perf_counter()
+    res = swap(fld, p2, opt)
+    seconds["swap"] = time.perf_counter() - t
+    progress(f"swap: {res.swaps} swaps in {res.rounds} rounds ({seconds['swap']:.1f} s)")
+    return AdaptResult(res.mesh, res.swaps, seconds, area)

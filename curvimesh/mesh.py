@@ -1,0 +1,335 @@
+"""The P2 triangle mesh as arrays, and its derived topology.
+
+A :class:`Mesh` holds points ``(n, 2)`` and triangles ``(m, 3)`` (P1) or
+``(m, 6)`` (P2). The corners of a triangle come first, counter-clockwise, then
+for P2 the nodes of its edges 0-1, 1-2, 2-0 (Gmsh ``triangle6`` order)::
+
+        2
+        | \\
+        5   4
+        |     \\
+        0 - 3 - 1
+
+Edges are the unique corner pairs ``(i, j)`` with ``i < j``, sorted
+lexicographically, so that everything derived from a mesh is deterministic.
+Local edge ``k`` of a triangle joins its corners ``k`` and ``(k + 1) % 3``.
+A mesh without triangles (shape ``(0, 3)``) is a point cloud.
+
+The mesh is immutable: its arrays are read-only and the derived topology is
+computed once, on first use, and cached on the object.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "Mesh",
+    "boundary_sides",
+    "is_conforming",
+    "p1_of",
+    "signed_areas",
+    "to_p2_straight",
+]
+
+# Local edge k of a triangle joins corners _LOCAL_EDGES[k] = (k, (k + 1) % 3).
+_LOCAL_EDGES = np.array([[0, 1], [1, 2], [2, 0]])
+
+
+def _frozen(x: ArrayLike, dtype: type) -> NDArray:
+    """Return ``x`` as a read-only array of ``dtype``, never freezing the caller's array."""
+    arr = np.asarray(x, dtype=dtype)
+    if arr.flags.writeable or not arr.flags.owndata:
+        arr = arr.copy()
+    arr.setflags(write=False)
+    return arr
+
+
+def _readonly(arr: NDArray) -> NDArray:
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class Mesh:
+    """A P1 or P2 triangle mesh, or a point cloud.
+
+    Attributes:
+        points: ``(n, 2)`` float64 node coordinates.
+        triangles: ``(m, 3)`` or ``(m, 6)`` int64 node ids: corners
+            counter-clockwise, then (P2) the nodes of edges 01, 12, 20.
+            ``(0, 3)`` for a point cloud.
+        box: ``(xmin, ymin, xmax, ymax)`` of the domain, if known.
+
+    The arrays are copied unless already read-only and are made read-only.
+
+    >>> mesh = Mesh([[0, 0], [1, 0], [1, 1], [0, 1]], [[0, 1, 2], [0, 2, 3]])
+    >>> mesh.order, len(mesh.edges), mesh.boundary_edges.tolist()
+    (1, 5, [0, 2, 3, 4])
+    >>> mesh.edges[1].tolist(), mesh.edge_tris[1].tolist()
+    ([0, 2], [0, 1])
+    >>> mesh.neighbours.tolist()
+    [[-1, -1, 1], [0, -1, -1]]
+    """
+
+    points: NDArray[np.float64]
+    triangles: NDArray[np.int64]
+    box: tuple[float, float, float, float] | None = None
+
+    def __post_init__(self) -> None:
+        points = _frozen(self.points, np.float64)
+        if points.ndim != 2 or points.shape[1] != 2:
+            raise ValueError(f"points must have shape (n, 2), got {points.shape}")
+        raw = np.asarray(self.triangles)
+        if raw.size == 0:
+            width = raw.shape[1] if raw.ndim == 2 and raw.shape[1] in (3, 6) else 3
+            raw = np.zeros((0, width), dtype=np.int64)
+        elif raw.dtype.kind not in "iu":
+            raise ValueError(f"triangles must hold integers, got {raw.dtype}")
+        triangles = _frozen(raw, np.int64)
+        if triangles.ndim != 2 or triangles.shape[1] not in (3, 6):
+            raise ValueError(f"triangles must have shape (m, 3) or (m, 6), got {triangles.shape}")
+        if triangles.size and (triangles.min() < 0 or triangles.max() >= len(points)):
+            raise ValueError(f"triangle node ids must lie in [0, {len(points)})")
+        box = self.box
+        if box is not None:
+            box = tuple(float(v) for v in box)
+            if len(box) != 4 or not (box[0] <= box[2] and box[1] <= box[3]):
+                raise ValueError(f"box must be (xmin, ymin, xmax, ymax), got {self.box}")
+        object.__setattr__(self, "points", points)
+        object.__setattr__(self, "triangles", triangles)
+        object.__setattr__(self, "box", box)
+
+    def __repr__(self) -> str:
+        return (
+            f"Mesh(order={self.order}, nodes={len(self.points)}, "
+            f"triangles={len(self.triangles)}, box={self.box})"
+        )
+
+    @property
+    def order(self) -> int:
+        """Polynomial order of the triangles: 1 (and for a point cloud) or 2."""
+        return 2 if self.triangles.shape[1] == 6 else 1
+
+    @property
+    def corners(self) -> NDArray[np.int64]:
+        """``(m, 3)`` corner node ids of the triangles (a read-only view)."""
+        return self.triangles[:, :3]
+
+    @cached_property
+    def vertex_ids(self) -> NDArray[np.int64]:
+        """``(nv,)`` sorted unique node ids that are triangle corners."""
+        return _readonly(np.unique(self.corners))
+
+    @cached_property
+    def _edge_table(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        corners = self.corners
+        a = corners[:, _LOCAL_EDGES[:, 0]].ravel()  # flat index 3 t + k
+        b = corners[:, _LOCAL_EDGES[:, 1]].ravel()
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        # One int64 key per pair keeps the lexicographic order of (lo, hi).
+        n = max(len(self.points), 1)
+        keys, inverse = np.unique(lo * n + hi, return_inverse=True)
+        edges = np.column_stack([keys // n, keys % n]).astype(np.int64)
+        return _readonly(edges), _readonly(inverse.reshape(-1, 3).astype(np.int64))
+
+    @property
+    def edges(self) -> NDArray[np.int64]:
+        """``(E, 2)`` unique corner pairs ``(i, j)``, ``i < j``, sorted lexicographically."""
+        return self._edge_table[0]
+
+    @property
+    def tri_edges(self) -> NDArray[np.int64]:
+        """``(m, 3)`` index in :attr:`edges` of the edges 01, 12, 20 of each triangle."""
+        return self._edge_table[1]
+
+    @cached_property
+    def edge_tris(self) -> NDArray[np.int64]:
+        """``(E, 2)`` the triangles of each edge, ascending; ``-1`` in column 1 on the boundary.
+
+        On a non-conforming edge held by more than two triangles, the first two.
+        """
+        n_edges = len(self.edges)
+        flat = self.tri_edges.ravel()
+        order = np.argsort(flat, kind="stable")  # grouped by edge, triangles ascending
+        counts = np.bincount(flat, minlength=n_edges)
+        start = np.cumsum(counts) - counts
+        result = np.full((n_edges, 2), -1, dtype=np.int64)
+        result[:, 0] = order[start] // 3
+        two = counts >= 2
+        result[two, 1] = order[start[two] + 1] // 3
+        return _readonly(result)
+
+    @cached_property
+    def edge_mid(self) -> NDArray[np.int64]:
+        """``(E,)`` the P2 node id of each edge; ``-1`` everywhere for a P1 mesh."""
+        mid = np.full(len(self.edges), -1, dtype=np.int64)
+        if self.order == 2:
+            np.maximum.at(mid, self.tri_edges.ravel(), self.triangles[:, 3:].ravel())
+        return _readonly(mid)
+
+    @cached_property
+    def boundary_edges(self) -> NDArray[np.int64]:
+        """``(nb,)`` ascending indices in :attr:`edges` of the edges held by one triangle."""
+        return _readonly(np.flatnonzero(self.edge_tris[:, 1] < 0))
+
+    @cached_property
+    def boundary_lines(self) -> NDArray[np.int64]:
+        """``(nb, 2)`` (P1) or ``(nb, 3)`` (P2) node ids of each boundary edge.
+
+        Rows follow :attr:`boundary_edges`. Each runs as in its triangle, so
+        the domain lies on its left; the P2 edge node comes last (Gmsh
+        ``line3`` order).
+        """
+        be = self.boundary_edges
+        tri = self.edge_tris[be, 0]
+        local = np.argmax(self.tri_edges[tri] == be[:, None], axis=1)
+        cols = [local, (local + 1) % 3] + ([local + 3] if self.order == 2 else [])
+        lines = np.column_stack([self.triangles[tri, c] for c in cols]).astype(np.int64)
+        return _readonly(lines.reshape(len(be), len(cols)))
+
+    @cached_property
+    def neighbours(self) -> NDArray[np.int64]:
+        """``(m, 3)`` the triangle across local edge 01, 12, 20 of each triangle, or ``-1``."""
+        pair = self.edge_tris[self.tri_edges]  # (m, 3, 2)
+        own = np.arange(len(self.triangles))[:, None]
+        return _readonly(np.where(pair[..., 0] == own, pair[..., 1], pair[..., 0]))
+
+
+def signed_areas(points: ArrayLike, tris: ArrayLike) -> NDArray[np.float64]:
+    """Signed areas ``(m,)`` of the straight triangles on the first three columns of ``tris``.
+
+    Positive for counter-clockwise corners: A = ((x1 - x0) × (x2 - x0)) / 2.
+
+    >>> signed_areas([[0, 0], [2, 0], [0, 1]], [[0, 1, 2], [0, 2, 1]]).tolist()
+    [1.0, -1.0]
+    """
+    p = np.asarray(points, dtype=np.float64)
+    t = np.asarray(tris, dtype=np.int64)
+    if t.size == 0:
+        return np.zeros(0)
+    u = p[t[:, 1]] - p[t[:, 0]]
+    v = p[t[:, 2]] - p[t[:, 0]]
+    return 0.5 * (u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])
+
+
+def is_conforming(mesh: Mesh) -> bool:
+    """Whether ``mesh`` is a conforming triangulation.
+
+    True when every triangle has three distinct corners, every edge is held
+    by at most two triangles, an edge held by two runs in opposite directions
+    in them, and (P2) both triangles of an edge use the same edge node, that
+    node serving no other edge and being no corner. Geometry is not looked at.
+    """
+    corners = mesh.corners
+    if len(corners) == 0:
+        return True
+    if np.any((corners[:, 0] == corners[:, 1]) | (corners[:, 1] == corners[:, 2])):
+        return False
+    if np.any(corners[:, 2] == corners[:, 0]):
+        return False
+    n_edges = len(mesh.edges)
+    flat = mesh.tri_edges.ravel()
+    counts = np.bincount(flat, minlength=n_edges)
+    if counts.max() > 2:
+        return False
+    # +1 where the triangle runs along its edge i -> j (i < j), -1 against it:
+    # an interior edge must get one of each.
+    sense = np.where(corners.ravel() < corners[:, [1, 2, 0]].ravel(), 1, -1)
+    if np.any(np.bincount(flat, weights=sense, minlength=n_edges)[counts == 2] != 0):
+        return False
+    if mesh.order == 2:
+        mids = mesh.triangles[:, 3:].ravel()
+        low = np.full(n_edges, np.iinfo(np.int64).max, dtype=np.int64)
+        np.minimum.at(low, flat, mids)
+        if np.any(low != mesh.edge_mid):
+            return False
+        if len(np.unique(mesh.edge_mid)) != n_edges:
+            return False
+        if np.intersect1d(mesh.edge_mid, mesh.vertex_ids).size:
+            return False
+    return True
+
+
+def to_p2_straight(mesh: Mesh) -> Mesh:
+    """The straight-sided P2 mesh with the corners of ``mesh``.
+
+    A P1 mesh gets one new node per edge, at its midpoint, numbered
+    ``n + e`` for edge ``e`` of :attr:`Mesh.edges` (appended after the
+    existing points). A P2 mesh keeps its numbering and has its edge nodes
+    moved back to the edge midpoints.
+
+    >>> p2 = to_p2_straight(Mesh([[0, 0], [2, 0], [0, 2]], [[0, 1, 2]]))
+    >>> p2.triangles.tolist(), p2.points[3:].tolist()
+    ([[0, 1, 2, 3, 5, 4]], [[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    """
+    corners = mesh.corners
+    if mesh.order == 2:
+        points = np.array(mesh.points)
+        for k, (a, b) in enumerate(_LOCAL_EDGES):
+            points[mesh.triangles[:, 3 + k]] = 0.5 * (
+                mesh.points[corners[:, a]] + mesh.points[corners[:, b]]
+            )
+        return Mesh(points, mesh.triangles, mesh.box)
+    n = len(mesh.points)
+    edges = mesh.edges
+    mid = 0.5 * (mesh.points[edges[:, 0]] + mesh.points[edges[:, 1]])
+    points = np.concatenate([mesh.points, mid.reshape(-1, 2)])
+    triangles = np.column_stack([corners, n + mesh.tri_edges]).reshape(-1, 6)
+    return Mesh(points, triangles, mesh.box)
+
+
+def p1_of(mesh: Mesh) -> Mesh:
+    """The P1 mesh on the corners of ``mesh``.
+
+    Nodes that are no triangle corner are dropped; the others keep their
+    relative order. A point cloud is returned unchanged.
+
+    >>> p1 = p1_of(Mesh([[0, 0], [9, 9], [2, 0], [0, 2], [1, 0], [1, 1], [0, 1]],
+    ...                 [[0, 2, 3, 4, 5, 6]]))
+    >>> p1.triangles.tolist(), p1.points.tolist()
+    ([[0, 1, 2]], [[0.0, 0.0], [2.0, 0.0], [0.0, 2.0]])
+    """
+    if len(mesh.triangles) == 0:
+        return mesh
+    keep = mesh.vertex_ids
+    renumber = np.full(len(mesh.points), -1, dtype=np.int64)
+    renumber[keep] = np.arange(len(keep))
+    return Mesh(mesh.points[keep], renumber[mesh.corners], mesh.box)
+
+
+def boundary_sides(mesh: Mesh, tol: float | None = None) -> NDArray[np.int64]:
+    """The side of the domain box each boundary edge lies on.
+
+    Returns ``(nb,)`` ints following :attr:`Mesh.boundary_edges`: 0 bottom,
+    1 right, 2 top, 3 left, -1 on no side. An edge is on a side when both its
+    corners are within ``tol`` of that side's line (default 1e-9 times the
+    larger box extent). The box is ``mesh.box``, else the bounding box of the
+    points.
+
+    >>> mesh = Mesh([[0, 0], [1, 0], [1, 1], [0, 1], [0.5, 0.5]],
+    ...             [[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+    >>> mesh.edges[mesh.boundary_edges].tolist(), boundary_sides(mesh).tolist()
+    ([[0, 1], [0, 3], [1, 2], [2, 3]], [0, 3, 1, 2])
+    """
+    lines = mesh.points[mesh.edges[mesh.boundary_edges]]  # (nb, 2 ends, 2 coords)
+    if len(lines) == 0:
+        return np.zeros(0, dtype=np.int64)
+    if mesh.box is not None:
+        xmin, ymin, xmax, ymax = mesh.box
+    else:
+        (xmin, ymin), (xmax, ymax) = mesh.points.min(axis=0), mesh.points.max(axis=0)
+    if tol is None:
+        tol = 1e-9 * max(xmax - xmin, ymax - ymin, np.finfo(float).tiny)
+    # (coordinate, value) of the line of each side: y = ymin, x = xmax, y = ymax, x = xmin.
+    sides = [(1, ymin), (0, xmax), (1, ymax), (0, xmin)]
+    result = np.full(len(lines), -1, dtype=np.int64)
+    for side in reversed(range(4)):  # the first matching side wins
+        axis, value = sides[side]
+        on = np.all(np.abs(lines[:, :, axis] - value) <= tol, axis=1)
+        result[on] = side
+    return result

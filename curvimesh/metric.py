@@ -1,0 +1,605 @@
+"""Riemannian metric fields on a box, loaded from YAML (SPEC section 2).
+
+A :class:`MetricField` evaluates the metric tensor g(x, y) and its first
+partial derivatives at arrays of points at once. Components are compiled
+once: the sympy expressions of g11, g12, g22 and their exact derivatives
+(sympy differentiation) are lambdified into one vectorised numpy function
+with common subexpressions eliminated (``cse=True``).
+
+Shapes: points ``(n, 2)``; tensors ``(n, 2, 2)``; derivatives ``(n, 2, 2, 2)``
+with ``dg[p, i, j, k] = ∂g_ij/∂x_k`` at point p.
+
+The metric forms (SPEC section 2):
+
+* ``isotropic: H``  →  g = I / H²
+* ``eigen: {sizes: [H1, H2], angle: A}``  →  g = R(A) diag(1/H1², 1/H2²) R(A)ᵀ
+* ``tensor: [G11, G12, G22]``
+* ``intersection: [ITEM, ...]`` → the metric intersection of the items,
+  folded left (simultaneous reduction; see :func:`intersect`).
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import os
+import re
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import sympy
+import yaml
+from numpy.typing import NDArray
+
+from curvimesh.errors import ExpressionError, MetricError
+from curvimesh.expressions import FUNCTIONS, parse_expression
+
+X, Y = sympy.symbols("x y", real=True)
+
+#: Largest metric file accepted, in bytes (a metric file is a few hundred bytes).
+MAX_FILE_BYTES = 1_000_000
+
+TOP_KEYS = ("name", "description", "domain", "parameters", "definitions", "metric")
+ITEM_KEYS = ("parameters", "definitions")
+FORMS = ("isotropic", "eigen", "tensor", "intersection")
+RESERVED = frozenset({"x", "y", "pi", *FUNCTIONS})
+_IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+# --------------------------------------------------------------------------- #
+# Numerical kernels on tensors                                                 #
+# --------------------------------------------------------------------------- #
+
+
+def intersect(m1: NDArray, m2: NDArray) -> NDArray:
+    """Metric intersection M1 ∩ M2 by simultaneous reduction, in closed form.
+
+    With the generalised eigenpairs M2 v = s M1 v (s real, positive), and
+    λ = vᵀ M1 v, the intersection keeps in each common direction the larger
+    of the two lengths' inverses (Frey & George, "Mesh generation", §10.6):
+
+        M = Σ_i max(1, s_i) / λ_i · (M1 v_i)(M1 v_i)ᵀ.
+
+    Works on real or complex arrays of shape (n, 2, 2) (complex inputs are
+    used for complex-step derivatives; branches are chosen on real parts).
+    If the two metrics are proportional (s1 = s2 = s) the result is max(1, s) M1.
+
+    >>> a = np.array([[[1.0, 0.0], [0.0, 4.0]]]); b = np.array([[[4.0, 0.0], [0.0, 1.0]]])
+    >>> intersect(a, b)[0].real.tolist()
+    [[4.0, 0.0], [0.0, 4.0]]
+    """
+    a11, a12, a22 = m1[:, 0, 0], m1[:, 0, 1], m1[:, 1, 1]
+    b11, b12, b22 = m2[:, 0, 0], m2[:, 0, 1], m2[:, 1, 1]
+    # det(M2 - s M1) = qa s² + qb s + qc
+    qa = a11 * a22 - a12 * a12
+    qb = -(a11 * b22 + a22 * b11 - 2.0 * a12 * b12)
+    qc = b11 * b22 - b12 * b12
+    disc = qb * qb - 4.0 * qa * qc
+    scale = qb.real * qb.real
+    degenerate = disc.real <= 1e-24 * scale
+    root = np.sqrt(np.where(degenerate, 1.0, disc))
+    out = np.zeros_like(m1)
+    for sign in (-1.0, 1.0):
+        s = (-qb + sign * root) / (2.0 * qa)
+        # null vector of A = M2 - s M1 (symmetric, singular)
+        c11, c12, c22 = b11 - s * a11, b12 - s * a12, b22 - s * a22
+        use_first = np.abs(c11.real) >= np.abs(c22.real)
+        v1 = np.where(use_first, -c12, c22)
+        v2 = np.where(use_first, c11, -c12)
+        w1 = a11 * v1 + a12 * v2  # M1 v
+        w2 = a12 * v1 + a22 * v2
+        lam = v1 * w1 + v2 * w2
+        lam = np.where(degenerate, 1.0, lam)
+        f = np.where(s.real > 1.0, s, 1.0) / lam
+        out[:, 0, 0] += f * w1 * w1
+        out[:, 0, 1] += f * w1 * w2
+        out[:, 1, 1] += f * w2 * w2
+    s0 = -qb / (2.0 * qa)
+    big = np.where(s0.real > 1.0, s0, 1.0)
+    out[degenerate] = big[degenerate, None, None] * m1[degenerate]
+    out[:, 1, 0] = out[:, 0, 1]
+    return out
+
+
+def intersect_with_derivatives(
+    g1: NDArray, dg1: NDArray, g2: NDArray, dg2: NDArray
+) -> tuple[NDArray, NDArray]:
+    """Intersection and its derivatives, by the complex-step method.
+
+    The intersection is not smooth where the choice of max(1, s_i) switches
+    or where s1 = s2; everywhere else it is an analytic function of (M1, M2),
+    so its directional derivative along (∂M1/∂x_k, ∂M2/∂x_k) is
+    Im I(M1 + i h ∂M1, M2 + i h ∂M2) / h exactly (to rounding) with h = 1e-30
+    (Squire & Trapp 1998). Where it is not smooth this gives the derivative
+    of the branch selected at the point, a one-sided derivative, which is
+    what a geodesic integrator stepping across the kink needs.
+    """
+    h = 1e-30
+    g = intersect(g1, g2).real
+    dg = np.empty_like(dg1)
+    for k in range(2):
+        z = intersect(g1 + 1j * h * dg1[..., k], g2 + 1j * h * dg2[..., k])
+        dg[..., k] = z.imag / h
+    return g, dg
+
+
+def eigen_decomposition(g: NDArray) -> tuple[NDArray, NDArray]:
+    """Eigenvalues ``(n, 2)`` ascending and unit eigenvectors ``(n, 2, 2)`` (columns).
+
+    Sizes along the eigenvectors are 1/sqrt(eigenvalue): the first column is
+    the direction of the largest size.
+    """
+    w, v = np.linalg.eigh(g)
+    return w, v
+
+
+# --------------------------------------------------------------------------- #
+# Compiled fields                                                              #
+# --------------------------------------------------------------------------- #
+
+
+def _rewrite_minmax(expr: sympy.Expr) -> sympy.Expr:
+    """Rewrite Min/Max as (a + b ∓ |a − b|)/2 so lambdify broadcasts and diff works."""
+
+    def fold(args, sign):
+        acc = args[0]
+        for b in args[1:]:
+            acc = (acc + b + sign * sympy.Abs(acc - b)) / 2
+        return acc
+
+    return expr.replace(sympy.Min, lambda *a: fold(a, -1)).replace(sympy.Max, lambda *a: fold(a, 1))
+
+
+def _compile(exprs: Sequence[sympy.Expr]) -> Callable[[NDArray, NDArray], list[NDArray]]:
+    """Lambdify expressions of (x, y) into one vectorised function (with cse)."""
+    exprs = [_rewrite_minmax(sympy.sympify(e)) for e in exprs]
+    fn = sympy.lambdify((X, Y), exprs, modules="numpy", cse=True)
+
+    def evaluate(x: NDArray, y: NDArray) -> list[NDArray]:
+        with np.errstate(all="ignore"):
+            vals = fn(x, y)
+        return [
+            v
+            if isinstance(v, np.ndarray) and v.shape == x.shape and v.dtype == float
+            else np.broadcast_to(np.asarray(v, dtype=float), x.shape)
+            for v in vals
+        ]
+
+    return evaluate
+
+
+@dataclass(frozen=True)
+class Component:
+    """One smooth metric g = [[g11, g12], [g12, g22]] given by sympy expressions.
+
+    ``sizes`` are the expressions that must be finite and positive
+    (the H of the isotropic and eigen forms); empty for the tensor form.
+    """
+
+    g: tuple[sympy.Expr, sympy.Expr, sympy.Expr]
+    sizes: tuple[sympy.Expr, ...] = ()
+    key: str = "metric"
+    _fn: Callable = field(init=False, repr=False, compare=False)
+    _gfn: Callable = field(init=False, repr=False, compare=False)
+    _sizes_fn: Callable | None = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        exprs = list(self.g)
+        exprs += [sympy.diff(e, X) for e in self.g]
+        exprs += [sympy.diff(e, Y) for e in self.g]
+        object.__setattr__(self, "_fn", _compile(exprs))
+        object.__setattr__(self, "_gfn", _compile(list(self.g)))
+        sizes_fn = _compile(self.sizes) if self.sizes else None
+        object.__setattr__(self, "_sizes_fn", sizes_fn)
+
+    def evaluate(self, pts: NDArray, derivatives: bool) -> tuple[NDArray, NDArray | None]:
+        """g ``(n,2,2)`` and, if asked, ∂g ``(n,2,2,2)`` (exact, from sympy)."""
+        x, y = pts[:, 0], pts[:, 1]
+        if not derivatives:
+            v = self._gfn(x, y)
+            return _pack(v[0], v[1], v[2]), None
+        v = self._fn(x, y)
+        g = _pack(v[0], v[1], v[2])
+        dg = np.stack([_pack(v[3], v[4], v[5]), _pack(v[6], v[7], v[8])], axis=-1)
+        return g, dg
+
+    def sizes_at(self, pts: NDArray) -> NDArray:
+        """The size expressions at points, ``(n, k)`` (k = 0 for the tensor form)."""
+        if self._sizes_fn is None:
+            return np.zeros((len(pts), 0))
+        return np.stack(self._sizes_fn(pts[:, 0], pts[:, 1]), axis=1)
+
+
+def _pack(g11: NDArray, g12: NDArray, g22: NDArray) -> NDArray:
+    g = np.empty((*g11.shape, 2, 2))
+    g[..., 0, 0] = g11
+    g[..., 0, 1] = g12
+    g[..., 1, 0] = g12
+    g[..., 1, 1] = g22
+    return g
+
+
+@dataclass(frozen=True)
+class MetricField:
+    """A metric field on a box: one component, or the intersection of several.
+
+    ``box`` is (xmin, ymin, xmax, ymax). ``source`` names the file it came
+    from (for messages).
+    """
+
+    components: tuple[Component, ...]
+    box: tuple[float, float, float, float] = (0.0, 0.0, 1.0, 1.0)
+    name: str = "metric"
+    source: str = "<metric>"
+
+    def evaluate(
+        self, pts: NDArray, *, derivatives: bool = False, check: bool = True
+    ) -> tuple[NDArray, NDArray | None]:
+        """The metric ``(n,2,2)`` and optionally its derivatives ``(n,2,2,2)`` at ``pts``.
+
+        With ``check`` (the default) a non-finite or non-SPD value raises
+        :class:`MetricError` naming the first bad point; without it, bad rows
+        are returned as NaN for the caller to handle.
+
+        Derivatives that come out non-finite at an isolated singular point of
+        the expressions (e.g. d/dx sqrt(x²+y²) at the origin) while g itself
+        is finite are replaced by central differences of g there.
+        """
+        pts = np.ascontiguousarray(pts, dtype=float).reshape(-1, 2)
+        g, dg = self._raw(pts, derivatives)
+        bad = ~_spd(g)
+        if bad.any():
+            if check:
+                p = pts[np.argmax(bad)]
+                raise MetricError(
+                    f"{self.source}: metric is not finite and positive definite at "
+                    f"({p[0]:.6g}, {p[1]:.6g}): g = {_fmt(g[np.argmax(bad)])}"
+                )
+            g[bad] = np.nan
+        if derivatives:
+            assert dg is not None
+            nf = ~np.isfinite(dg).all(axis=(1, 2, 3)) & ~bad
+            if nf.any():
+                dg[nf] = self._central_difference(pts[nf])
+            if bad.any():
+                dg[bad] = np.nan
+        return g, dg
+
+    def tensor(self, pts: NDArray, *, check: bool = True) -> NDArray:
+        """The metric ``(n, 2, 2)`` at points ``(n, 2)``."""
+        return self.evaluate(pts, check=check)[0]
+
+    def _raw(self, pts: NDArray, derivatives: bool) -> tuple[NDArray, NDArray | None]:
+        g, dg = self._raw_once(pts, derivatives)
+        bad = ~np.isfinite(g).all(axis=(1, 2))
+        if bad.any():
+            # An isolated 0/0 of the expressions (sympy writes cos(atan2(y, x)) as
+            # x/sqrt(x² + y²), undefined at the origin): take the value at a point
+            # 1e-9 box sizes away, the limit along that direction.
+            xmin, ymin, xmax, ymax = self.box
+            shift = 1e-9 * max(xmax - xmin, ymax - ymin) * np.array([0.6, 0.8])
+            g2, dg2 = self._raw_once(pts[bad] + shift, derivatives)
+            g[bad] = g2
+            if derivatives:
+                dg[bad] = dg2
+        return g, dg
+
+    def _raw_once(self, pts: NDArray, derivatives: bool) -> tuple[NDArray, NDArray | None]:
+        g, dg = self.components[0].evaluate(pts, derivatives)
+        for comp in self.components[1:]:
+            g2, dg2 = comp.evaluate(pts, derivatives)
+            with np.errstate(all="ignore"):
+                if derivatives:
+                    g, dg = intersect_with_derivatives(g, dg, g2, dg2)
+                else:
+                    g = intersect(g, g2).real
+        return g, dg
+
+    def _central_difference(self, pts: NDArray) -> NDArray:
+        xmin, ymin, xmax, ymax = self.box
+        h = 1e-6 * max(xmax - xmin, ymax - ymin)
+        dg = np.empty((len(pts), 2, 2, 2))
+        for k in range(2):
+            e = np.zeros(2)
+            e[k] = h
+            gp, _ = self._raw(pts + e, False)
+            gm, _ = self._raw(pts - e, False)
+            dg[..., k] = (gp - gm) / (2 * h)
+        return dg
+
+    def sizes(self, pts: NDArray) -> NDArray:
+        """The user's size expressions (H, H1, H2 of every item) at points, ``(n, k)``."""
+        return np.concatenate([c.sizes_at(pts) for c in self.components], axis=1)
+
+    def validate(self, pts: NDArray) -> None:
+        """Raise :class:`MetricError` if a size is not finite and positive, or g is not SPD."""
+        pts = np.asarray(pts, dtype=float).reshape(-1, 2)
+        for comp in self.components:
+            s = comp.sizes_at(pts)
+            if s.size:
+                with np.errstate(invalid="ignore"):
+                    bad = ~(np.isfinite(s) & (s > 0)).all(axis=1)
+                if bad.any():
+                    i = int(np.argmax(bad))
+                    raise MetricError(
+                        f"{self.source}: {comp.key}: size is not finite and positive at "
+                        f"({pts[i, 0]:.6g}, {pts[i, 1]:.6g}): sizes = "
+                        f"{', '.join(f'{v:.6g}' for v in s[i])}"
+                    )
+        self.evaluate(pts, derivatives=False, check=True)
+
+    def sample_points(self, n: int = 65) -> NDArray:
+        """A regular n×n grid over the box, boundary included, ``(n*n, 2)``."""
+        xmin, ymin, xmax, ymax = self.box
+        gx, gy = np.meshgrid(np.linspace(xmin, xmax, n), np.linspace(ymin, ymax, n))
+        return np.column_stack([gx.ravel(), gy.ravel()])
+
+
+def _spd(g: NDArray) -> NDArray:
+    with np.errstate(invalid="ignore"):
+        finite = np.isfinite(g).all(axis=(1, 2))
+        det = g[:, 0, 0] * g[:, 1, 1] - g[:, 0, 1] * g[:, 1, 0]
+        return finite & (g[:, 0, 0] > 0) & (det > 0)
+
+
+def _fmt(g: NDArray) -> str:
+    return f"[{g[0, 0]:.6g}, {g[0, 1]:.6g}, {g[1, 1]:.6g}]"
+
+
+# --------------------------------------------------------------------------- #
+# Integrals over the box                                                       #
+# --------------------------------------------------------------------------- #
+
+
+def density_integral(field_: MetricField, *, cells: int = 128, order: int = 4) -> float:
+    """Metric area ∫_Ω sqrt(det g) dx over the box (SPEC section 4).
+
+    Tensor-product Gauss–Legendre with ``order`` points per direction on a
+    ``cells`` × ``cells`` grid of the box.
+    """
+    xmin, ymin, xmax, ymax = field_.box
+    xg, wg = np.polynomial.legendre.leggauss(order)
+    t = (xg + 1) / 2
+    ex = np.linspace(xmin, xmax, cells + 1)
+    ey = np.linspace(ymin, ymax, cells + 1)
+    px = (ex[:-1, None] + np.diff(ex)[:, None] * t[None, :]).ravel()
+    py = (ey[:-1, None] + np.diff(ey)[:, None] * t[None, :]).ravel()
+    wx = np.tile(wg / 2, cells) * np.repeat(np.diff(ex), order)
+    wy = np.tile(wg / 2, cells) * np.repeat(np.diff(ey), order)
+    gx, gy = np.meshgrid(px, py, indexing="ij")
+    w = np.outer(wx, wy).ravel()
+    total = 0.0
+    pts = np.column_stack([gx.ravel(), gy.ravel()])
+    for chunk in range(0, len(pts), 200_000):
+        g = field_.tensor(pts[chunk : chunk + 200_000])
+        det = g[:, 0, 0] * g[:, 1, 1] - g[:, 0, 1] ** 2
+        total += float(np.dot(np.sqrt(det), w[chunk : chunk + 200_000]))
+    return total
+
+
+#: Area of the unit equilateral triangle, √3/4.
+UNIT_TRIANGLE_AREA = math.sqrt(3.0) / 4.0
+
+
+# --------------------------------------------------------------------------- #
+# Loading YAML                                                                 #
+# --------------------------------------------------------------------------- #
+
+
+class _NoAliasLoader(yaml.SafeLoader):
+    """A safe loader that refuses YAML aliases (no 'billion laughs')."""
+
+    def compose_node(self, parent, index):  # type: ignore[override]
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.constructor.ConstructorError(
+                None, None, "aliases are not allowed", event.start_mark
+            )
+        return super().compose_node(parent, index)
+
+    def construct_mapping(self, node, deep=False):  # type: ignore[override]
+        seen: set = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if isinstance(key, str) and key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key '{key}'", key_node.start_mark
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def _suggest(word: str, choices: Sequence[str]) -> str:
+    close = difflib.get_close_matches(word, list(choices), n=1)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+class _Loader:
+    """Turns a parsed YAML document into a :class:`MetricField`, naming keys in errors."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+
+    def fail(self, key: str, msg: str) -> MetricError:
+        return MetricError(f"{self.source}: {key}: {msg}")
+
+    def check_keys(self, mapping: Mapping, allowed: Sequence[str], key: str) -> None:
+        for k in mapping:
+            if not isinstance(k, str) or k not in allowed:
+                raise self.fail(
+                    f"{key}.{k}" if key else str(k),
+                    f"unknown key{_suggest(str(k), allowed)}; allowed: {', '.join(allowed)}",
+                )
+
+    def load(self, doc: object) -> MetricField:
+        if not isinstance(doc, dict):
+            raise MetricError(f"{self.source}: expected a mapping at the top level")
+        self.check_keys(doc, TOP_KEYS, "")
+        name = doc.get("name", os.path.splitext(os.path.basename(self.source))[0])
+        if not isinstance(name, str | int | float):
+            raise self.fail("name", "must be a string")
+        box = self.box(doc.get("domain"))
+        params = self.parameters(doc.get("parameters"), "parameters", {})
+        defs = self.definitions_raw(doc.get("definitions"), "definitions")
+        if "metric" not in doc:
+            raise self.fail("metric", "missing (one of: " + ", ".join(FORMS) + ")")
+        comps = self.form(doc["metric"], "metric", params, defs)
+        return MetricField(tuple(comps), box=box, name=str(name), source=self.source)
+
+    def box(self, domain: object) -> tuple[float, float, float, float]:
+        if domain is None:
+            return (0.0, 0.0, 1.0, 1.0)
+        if not isinstance(domain, dict):
+            raise self.fail("domain", "must be a mapping with key 'box'")
+        self.check_keys(domain, ("box",), "domain")
+        b = domain.get("box")
+        ok = (
+            isinstance(b, list)
+            and len(b) == 2
+            and all(isinstance(p, list) and len(p) == 2 for p in b)
+            and all(_is_number(v) for p in b for v in p)
+        )
+        if not ok:
+            raise self.fail("domain.box", f"must be [[xmin, ymin], [xmax, ymax]], got {b!r}")
+        (x0, y0), (x1, y1) = b
+        vals = [float(v) for v in (x0, y0, x1, y1)]
+        if not all(math.isfinite(v) for v in vals):
+            raise self.fail("domain.box", "coordinates must be finite")
+        if not (vals[0] < vals[2] and vals[1] < vals[3]):
+            raise self.fail("domain.box", f"min must be below max, got {b!r}")
+        return (vals[0], vals[1], vals[2], vals[3])
+
+    def name_ok(self, name: object, key: str) -> str:
+        if not isinstance(name, str) or not _IDENT.match(name):
+            raise self.fail(key, f"{name!r} is not a valid name")
+        if name in RESERVED:
+            raise self.fail(key, f"'{name}' is reserved (x, y, pi and function names)")
+        return name
+
+    def parameters(self, raw: object, key: str, base: Mapping[str, sympy.Expr]) -> dict:
+        out = dict(base)
+        if raw is None:
+            return out
+        if not isinstance(raw, dict):
+            raise self.fail(key, "must be a mapping of names to numbers")
+        for k, v in raw.items():
+            k = self.name_ok(k, f"{key}.{k}")
+            if not _is_number(v) or not math.isfinite(float(v)):
+                raise self.fail(f"{key}.{k}", f"must be a finite number, got {v!r}")
+            out[k] = sympy.Integer(v) if isinstance(v, int) else sympy.Float(v)
+        return out
+
+    def definitions_raw(self, raw: object, key: str) -> list[tuple[str, object, str]]:
+        if raw is None:
+            return []
+        if not isinstance(raw, dict):
+            raise self.fail(key, "must be a mapping of names to expressions")
+        return [(self.name_ok(k, f"{key}.{k}"), v, f"{key}.{k}") for k, v in raw.items()]
+
+    def scope(self, params: Mapping, defs: list[tuple[str, object, str]]) -> dict:
+        names: dict[str, sympy.Expr] = {"x": X, "y": Y, **params}
+        for name, text, key in defs:
+            names[name] = self.expr(text, names, key)
+        return names
+
+    def expr(self, text: object, names: Mapping[str, sympy.Expr], key: str) -> sympy.Expr:
+        if isinstance(text, bool) or not isinstance(text, str | int | float):
+            raise self.fail(key, f"must be an expression or a number, got {text!r}")
+        try:
+            return parse_expression(text, names)
+        except ExpressionError as exc:
+            raise self.fail(key, str(exc)) from None
+
+    def form(self, raw: object, key: str, params: dict, defs: list) -> list[Component]:
+        if not isinstance(raw, dict) or len(raw) == 0:
+            raise self.fail(key, "must hold exactly one of: " + ", ".join(FORMS))
+        for k in raw:
+            if k not in FORMS and k not in ITEM_KEYS:
+                raise self.fail(f"{key}.{k}", f"unknown metric form{_suggest(str(k), FORMS)}")
+        forms = [k for k in raw if k in FORMS]
+        if len(forms) != 1:
+            found = ", ".join(forms) if forms else "none"
+            raise self.fail(key, f"must hold exactly one of {', '.join(FORMS)} (found {found})")
+        if key == "metric" and any(k in ITEM_KEYS for k in raw):
+            bad = next(k for k in raw if k in ITEM_KEYS)
+            raise self.fail(f"{key}.{bad}", "put parameters and definitions at the top level")
+        form = forms[0]
+        body = raw[form]
+        fkey = f"{key}.{form}"
+        if form == "intersection":
+            if not isinstance(body, list) or len(body) == 0:
+                raise self.fail(fkey, "must be a non-empty list of metric items")
+            comps: list[Component] = []
+            for i, item in enumerate(body):
+                ikey = f"{fkey}[{i}]"
+                if not isinstance(item, dict):
+                    raise self.fail(ikey, "must be a mapping")
+                p = self.parameters(item.get("parameters"), f"{ikey}.parameters", params)
+                d = defs + self.definitions_raw(item.get("definitions"), f"{ikey}.definitions")
+                comps += self.form(item, ikey, p, d)
+            return comps
+        names = self.scope(params, defs)
+        if form == "isotropic":
+            h = self.expr(body, names, fkey)
+            return [Component((1 / h**2, sympy.Integer(0), 1 / h**2), (h,), fkey)]
+        if form == "eigen":
+            if not isinstance(body, dict):
+                raise self.fail(fkey, "must be a mapping with keys sizes and angle")
+            self.check_keys(body, ("sizes", "angle"), fkey)
+            sizes = body.get("sizes")
+            if not isinstance(sizes, list) or len(sizes) != 2:
+                raise self.fail(f"{fkey}.sizes", f"must be a list [H1, H2], got {sizes!r}")
+            if "angle" not in body:
+                raise self.fail(f"{fkey}.angle", "missing")
+            h1 = self.expr(sizes[0], names, f"{fkey}.sizes[0]")
+            h2 = self.expr(sizes[1], names, f"{fkey}.sizes[1]")
+            a = self.expr(body["angle"], names, f"{fkey}.angle")
+            c, s = sympy.cos(a), sympy.sin(a)
+            l1, l2 = 1 / h1**2, 1 / h2**2
+            g11 = l1 * c**2 + l2 * s**2
+            g12 = (l1 - l2) * c * s
+            g22 = l1 * s**2 + l2 * c**2
+            return [Component((g11, g12, g22), (h1, h2), fkey)]
+        # tensor
+        if not isinstance(body, list) or len(body) != 3:
+            raise self.fail(fkey, f"must be a list [G11, G12, G22], got {body!r}")
+        g = tuple(self.expr(v, names, f"{fkey}[{i}]") for i, v in enumerate(body))
+        return [Component(g, (), fkey)]  # type: ignore[arg-type]
+
+
+def _is_number(v: object) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+def load_metric_text(text: str, *, source: str = "<metric>") -> MetricField:
+    """Parse a metric from YAML text. Raises :class:`MetricError` with a one-line message."""
+    if len(text) > MAX_FILE_BYTES:
+        raise MetricError(f"{source}: file too large ({len(text)} bytes; limit {MAX_FILE_BYTES})")
+    try:
+        doc = yaml.load(text, Loader=_NoAliasLoader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise MetricError(f"{source}: invalid YAML{where}: {problem}") from None
+    except RecursionError:
+        raise MetricError(f"{source}: invalid YAML: nested too deeply") from None
+    field_ = _Loader(source).load(doc)
+    field_.validate(field_.sample_points(33))
+    return field_
+
+
+def load_metric(path: str | os.PathLike) -> MetricField:
+    """Load and validate a metric file (SPEC section 2)."""
+    source = os.fspath(path)
+    try:
+        with open(source, "rb") as f:
+            data = f.read(MAX_FILE_BYTES + 1)
+    except OSError as exc:
+        raise MetricError(f"{source}: cannot read: {exc.strerror or exc}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise MetricError(f"{source}: not a UTF-8 text file") from None
+    return load_metric_text(text, source=source)

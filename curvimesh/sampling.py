@@ -1,0 +1,182 @@
+"""Frontal point sampling along the metric's principal directions (paper Algorithm 1).
+
+Starting from the boundary vertices, every point of the current front shoots
+four geodesics along ±v₁, ±v₂, the eigenvectors of g at the point (paper
+section 3). A tentative end point is kept when it lies in the box, far enough
+from the boundary, and not too close to any kept point, closeness being
+measured by the length of the shortest parabola (equation (3)) and the
+candidates found through an R-tree. The kept points form the next front.
+
+Two departures from the paper's pseudo-code, both in its spirit:
+
+* a tentative point is checked against every point kept so far, including the
+  ones still waiting in the queue, so that two queued points are never closer
+  than ``min_dist`` (Algorithm 1 as printed checks only the popped ones);
+* fronts are processed as batches (all candidates of a front shot at once),
+  and conflicts between candidates of one front are resolved greedily in
+  their deterministic order (parent order, then direction +v₁, −v₁, +v₂, −v₂).
+
+The paper's fix of section 5.1 is applied: the shooting length is shortened so
+that the parabola between a point and its child comes out of length
+``spacing`` (a unit geodesic's end can be farther than 1 along a parabola).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from curvimesh.boundary import BoundaryMesh
+from curvimesh.geodesic import parabola_length_rule, shoot, shortest_parabola
+from curvimesh.metric import MetricField
+from curvimesh.spatial import PointIndex, pairs_within_boxes
+
+
+@dataclass(frozen=True)
+class SamplingOptions:
+    """Parameters of Algorithm 1.
+
+    ``spacing``: target metric length of the parabola between a point and its
+    child; ``min_dist``: no two points closer (shortest parabola) than this;
+    ``boundary_dist``: no interior point closer than this to a side (metric
+    length of the perpendicular segment); ``search``: Euclidean search radius
+    as a multiple of ``min_dist`` times the largest local size; ``max_points``
+    bounds the run.
+    """
+
+    spacing: float = 1.0
+    min_dist: float = 0.7
+    boundary_dist: float = 0.6
+    search: float = 2.0
+    length_fix: bool = True
+    max_points: int = 2_000_000
+
+
+def principal_directions(field: MetricField, pts: NDArray) -> NDArray:
+    """Unit eigenvectors ``(n, 4, 2)``: +v₁, −v₁, +v₂, −v₂ of g at each point."""
+    _, vec = np.linalg.eigh(field.tensor(pts))
+    v1, v2 = vec[:, :, 0], vec[:, :, 1]
+    return np.stack([v1, -v1, v2, -v2], axis=1)
+
+
+def max_size(field: MetricField, pts: NDArray) -> NDArray:
+    """Largest local size 1/sqrt(λ_min(g)) at each point ``(n,)``."""
+    w = np.linalg.eigvalsh(field.tensor(pts, check=False))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return 1.0 / np.sqrt(w[:, 0])
+
+
+def _too_close(field: MetricField, a: NDArray, b: NDArray, min_dist: float) -> NDArray:
+    """Whether the shortest parabola between rows of a and b is shorter than min_dist ``(p,)``.
+
+    The straight segment's length bounds the shortest parabola's from above,
+    so a pair whose straight length is below min_dist is close without more
+    work; the parabola is optimised only for pairs with straight length in
+    [min_dist, 1.5 min_dist] (farther pairs are taken as far).
+    """
+    if len(a) == 0:
+        return np.zeros(0, dtype=bool)
+    straight = parabola_length_rule(field, a, b, 0.5 * (a + b), segments=2, order=4)
+    close = straight < min_dist
+    maybe = np.flatnonzero(~close & (straight < 1.5 * min_dist))
+    if maybe.size:
+        par = shortest_parabola(
+            field, a[maybe], b[maybe], scan=5, alpha_tol=2e-3, exact_length=False
+        )
+        close[maybe] = par.length < min_dist
+    return close
+
+
+def _boundary_distance(field: MetricField, pts: NDArray) -> NDArray:
+    """Metric length of the perpendicular segment from each point to the nearest side ``(n,)``."""
+    xmin, ymin, xmax, ymax = field.box
+    feet = [
+        np.column_stack([pts[:, 0], np.full(len(pts), ymin)]),
+        np.column_stack([np.full(len(pts), xmax), pts[:, 1]]),
+        np.column_stack([pts[:, 0], np.full(len(pts), ymax)]),
+        np.column_stack([np.full(len(pts), xmin), pts[:, 1]]),
+    ]
+    d = [parabola_length_rule(field, pts, f, 0.5 * (pts + f), segments=2, order=4) for f in feet]
+    return np.min(d, axis=0)
+
+
+def _greedy_independent(n: int, i: NDArray, j: NDArray) -> NDArray:
+    """Keep candidates in order 0..n−1, dropping any that conflicts with a kept one.
+
+    Conflicts are pairs (i, j) with i < j. Returns a boolean mask ``(n,)``.
+    """
+    keep = np.ones(n, dtype=bool)
+    if len(i) == 0:
+        return keep
+    order = np.argsort(i, kind="stable")
+    i, j = i[order], j[order]
+    start = np.searchsorted(i, np.arange(n + 1))
+    for k in np.unique(i):  # rounds over conflicting candidates only
+        if keep[k]:
+            keep[j[start[k] : start[k + 1]]] = False
+    return keep
+
+
+def sample_points(
+    field: MetricField,
+    boundary: BoundaryMesh,
+    options: SamplingOptions | None = None,
+    *,
+    seed: int = 0,
+) -> NDArray:
+    """Algorithm 1: the boundary vertices followed by the sampled interior points ``(n, 2)``.
+
+    With ``seed`` 0 every front is processed in its natural order; another
+    seed shuffles each front (``np.random.default_rng(seed)``), which changes
+    how conflicts between candidates are resolved.
+    """
+    opt = options or SamplingOptions()
+    rng = np.random.default_rng(seed) if seed else None
+    xmin, ymin, xmax, ymax = field.box
+    index = PointIndex()
+    index.add(boundary.vertices)
+    front = boundary.vertices
+    while len(front) and index.size < opt.max_points:
+        dirs = principal_directions(field, front).reshape(-1, 2)
+        starts = np.repeat(front, 4, axis=0)
+        shot = shoot(field, starts, dirs, opt.spacing)
+        ok = shot.ok
+        if opt.length_fix and ok.any():
+            par = shortest_parabola(
+                field, starts[ok], shot.end[ok], scan=5, alpha_tol=2e-3, exact_length=False
+            )
+            length = np.full(len(starts), opt.spacing)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                length[ok] = opt.spacing * opt.spacing / par.length
+            length[~np.isfinite(length)] = opt.spacing
+            shot = shoot(field, starts, dirs, np.minimum(length, opt.spacing))
+            ok = shot.ok
+        cand = shot.end[ok]
+        inside = (
+            (cand[:, 0] > xmin) & (cand[:, 0] < xmax) & (cand[:, 1] > ymin) & (cand[:, 1] < ymax)
+        )
+        cand = cand[inside]
+        if len(cand):
+            cand = cand[_boundary_distance(field, cand) >= opt.boundary_dist]
+        if len(cand) == 0:
+            break
+        radius = opt.search * opt.min_dist * max_size(field, cand)
+        radius[~np.isfinite(radius)] = 0.0
+        # against the points kept so far
+        q, hit = index.query(cand - radius[:, None], cand + radius[:, None])
+        close = _too_close(field, cand[q], index.points[hit], opt.min_dist)
+        bad = np.zeros(len(cand), dtype=bool)
+        bad[q[close]] = True
+        cand = cand[~bad]
+        radius = radius[~bad]
+        # among the candidates of this front
+        i, j = pairs_within_boxes(cand, radius)
+        close = _too_close(field, cand[i], cand[j], opt.min_dist)
+        keep = _greedy_independent(len(cand), i[close], j[close])
+        front = cand[keep]
+        if rng is not None:
+            front = front[rng.permutation(len(front))]
+        index.add(front)
+    return index.points.copy()
