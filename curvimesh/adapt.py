@@ -17,10 +17,11 @@ from curvimesh import curve as _curve
 from curvimesh import swap as _swap
 from curvimesh.boundary import discretize_box
 from curvimesh.errors import InputError
+from curvimesh.fill import fill_gaps
 from curvimesh.mesh import Mesh
 from curvimesh.metric import UNIT_TRIANGLE_AREA, MetricField, density_integral
 from curvimesh.sampling import SamplingOptions, sample_points
-from curvimesh.triangulate import delaunay
+from curvimesh.triangulate import delaunay, metric_delaunay
 
 #: Default bound on the vertex count (SPEC: ``--max-vertices``).
 MAX_VERTICES = 2_000_000
@@ -40,6 +41,7 @@ class AdaptOptions:
     sampling: SamplingOptions = field(default_factory=SamplingOptions)
     max_vertices: int = MAX_VERTICES
     max_swap_rounds: int = 200
+    fill: bool = True
 
 
 def estimated_vertices(metric_area: float) -> float:
@@ -60,16 +62,23 @@ def check_size(fld: MetricField, max_vertices: int) -> float:
 
 
 def sample(fld: MetricField, options: AdaptOptions | None = None) -> Mesh:
-    """Stage 1: boundary discretisation and Algorithm 1; a point cloud on the box."""
+    """Stage 1: boundary discretisation, Algorithm 1 and gap filling; a point cloud on the box."""
     opt = options or AdaptOptions()
-    boundary = discretize_box(fld, target=opt.sampling.spacing)
+    boundary = discretize_box(fld, target=opt.sampling.spacing, min_dist=opt.sampling.min_dist)
     pts = sample_points(fld, boundary, opt.sampling, seed=opt.seed)
+    if opt.fill:
+        pts = fill_gaps(fld, pts, opt.sampling)
     return Mesh(pts, np.zeros((0, 3), dtype=np.int64), fld.box)
 
 
-def triangulate(points: Mesh) -> Mesh:
-    """Stage 2: Delaunay triangulation of the nodes of a point cloud (or of any mesh)."""
-    return delaunay(np.asarray(points.points), box=points.box)
+def triangulate(points: Mesh, fld: MetricField | None = None) -> Mesh:
+    """Stage 2: Delaunay triangulation of the nodes of a point cloud (or of any mesh).
+
+    With a metric, the Euclidean Delaunay triangulation is then flipped to
+    the Delaunay triangulation in the metric (:func:`metric_delaunay`).
+    """
+    mesh = delaunay(np.asarray(points.points), box=points.box)
+    return metric_delaunay(fld, mesh) if fld is not None else mesh
 
 
 def curve(fld: MetricField, mesh: Mesh) -> Mesh:
@@ -106,7 +115,7 @@ def adapt(
     seconds["sample"] = time.perf_counter() - t
     progress(f"sample: {len(cloud.points)} points ({seconds['sample']:.1f} s)")
     t = time.perf_counter()
-    p1 = triangulate(cloud)
+    p1 = triangulate(cloud, fld)
     seconds["triangulate"] = time.perf_counter() - t
     progress(f"triangulate: {len(p1.triangles)} triangles ({seconds['triangulate']:.1f} s)")
     t = time.perf_counter()

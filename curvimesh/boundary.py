@@ -47,10 +47,46 @@ def side_arclength(
     return s, np.concatenate([[0.0], np.cumsum(cell)])
 
 
-def discretize_box(field: MetricField, *, target: float = 1.0) -> BoundaryMesh:
-    """Split the four sides into quasi-unit edges of metric length ≈ ``target``."""
+def corner_edge_lengths(
+    field: MetricField, *, target: float, min_dist: float, max_length: float
+) -> NDArray:
+    """Metric length ``(4,)`` of the two boundary edges at each corner (0..3 from (xmin, ymin)).
+
+    At a corner whose angle is acute in the metric, two edges of length
+    ``target`` end closer than ``min_dist`` to each other. With M = g(corner)
+    and û, ŵ the unit (in M) directions of the two sides leaving the corner,
+    the edge ends are ℓ|û − ŵ|_M apart, so the edges get the length
+    ℓ = min_dist / |û − ŵ|_M, between ``target`` and ``max_length``. A corner
+    that needs more than ``max_length`` keeps a short edge across it: no
+    triangulation of a corner that sharp has all its edges in range.
+    """
     xmin, ymin, xmax, ymax = field.box
     corners = np.array([[xmin, ymin], [xmax, ymin], [xmax, ymax], [xmin, ymax]])
+    g = field.tensor(corners)
+    out = np.empty(4)
+    for k in range(4):
+        u = corners[(k + 1) % 4] - corners[k]
+        w = corners[(k - 1) % 4] - corners[k]
+        u = u / np.sqrt(u @ g[k] @ u)
+        w = w / np.sqrt(w @ g[k] @ w)
+        gap = float(np.sqrt((u - w) @ g[k] @ (u - w)))
+        # 2% margin: the metric varies over the corner's two edges
+        out[k] = min(max(target, 1.02 * min_dist / gap), max_length)
+    return out
+
+
+def discretize_box(
+    field: MetricField, *, target: float = 1.0, min_dist: float = 0.7, max_length: float = 1.5
+) -> BoundaryMesh:
+    """Split the four sides into quasi-unit edges of metric length ≈ ``target``.
+
+    The edges at a corner that is acute in the metric are lengthened so that
+    the first vertices of the two sides are at least ``min_dist`` apart (see
+    :func:`corner_edge_lengths`); the rest of each side is split evenly.
+    """
+    xmin, ymin, xmax, ymax = field.box
+    corners = np.array([[xmin, ymin], [xmax, ymin], [xmax, ymax], [xmin, ymax]])
+    at_corner = corner_edge_lengths(field, target=target, min_dist=min_dist, max_length=max_length)
     verts, mids, sides = [], [], []
     for k in range(4):
         a, b = corners[k], corners[(k + 1) % 4]
@@ -59,13 +95,19 @@ def discretize_box(field: MetricField, *, target: float = 1.0) -> BoundaryMesh:
         samples = int(min(max(256, 64 * cum[-1]), 2_000_000))
         s, cum = side_arclength(field, a, b, samples=samples)
         total = cum[-1]
-        n = max(1, round(total / target))
-        targets = np.linspace(0.0, total, n + 1)
+        first, last = at_corner[k], at_corner[(k + 1) % 4]
+        rest = total - first - last
+        if (first == target and last == target) or rest < 0.5 * target:
+            n = max(1, round(total / target))
+            targets = np.linspace(0.0, total, n + 1)
+        else:
+            n = max(1, round(rest / target))
+            targets = np.concatenate([[0.0], first + np.linspace(0.0, rest, n + 1), [total]])
         t = np.interp(targets, cum, s)
         tm = np.interp(0.5 * (targets[:-1] + targets[1:]), cum, s)
         verts.append(a[None, :] + t[:-1, None] * (b - a)[None, :])
         mids.append(a[None, :] + tm[:, None] * (b - a)[None, :])
-        sides.append(np.full(n, k))
+        sides.append(np.full(len(t) - 1, k))
     return BoundaryMesh(np.concatenate(verts), np.concatenate(mids), np.concatenate(sides))
 
 

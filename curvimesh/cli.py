@@ -228,7 +228,7 @@ def triangulate(ctx: Context, mesh_path, metric_path, output, fmt) -> None:
     """Stage 2: Delaunay triangulation of the points; writes triangle (P1) cells."""
     fld = load_metric(metric_path) if metric_path else None
     cloud = _read(mesh_path, fld)
-    write_mesh(output, pipeline.triangulate(cloud), fmt=fmt)
+    write_mesh(output, pipeline.triangulate(cloud, fld), fmt=fmt)
 
 
 @main.command()

@@ -374,8 +374,9 @@ def _parse(text: str) -> ast.Expression:
     except SyntaxError as exc:
         where = ""
         if exc.offset is not None:
-            where = f" at column {exc.offset}"
-            if exc.lineno is not None and exc.lineno > 1:
+            # Python reports an error at the end of the text at column 0.
+            where = f" at column {exc.offset}" if exc.offset > 0 else " at the end"
+            if exc.lineno is not None and exc.lineno > 1 and exc.offset > 0:
                 where = f" at line {exc.lineno}, column {exc.offset}"
         reason = _one_line(exc.msg or "invalid syntax")
         raise ExpressionError(f"syntax error{where}: {reason} in {_quote(text)}") from None

@@ -29,7 +29,10 @@ from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
     "Mesh",
+    "apply_flips",
     "boundary_sides",
+    "flip_candidates",
+    "independent_flips",
     "is_conforming",
     "p1_of",
     "signed_areas",
@@ -333,3 +336,58 @@ def boundary_sides(mesh: Mesh, tol: float | None = None) -> NDArray[np.int64]:
         on = np.all(np.abs(lines[:, :, axis] - value) <= tol, axis=1)
         result[on] = side
     return result
+
+
+def flip_candidates(mesh: Mesh) -> tuple[NDArray[np.int64], ...]:
+    """The interior edges of ``mesh`` as flip candidates, with their quads.
+
+    For every interior edge e = (a, b) held by t1 = (a, b, c) and t2 = (b, a, d)
+    (corners counter-clockwise), returns ``(e, t1, t2, a, b, c, d)``, each
+    ``(k,)``. Flipping e gives t1' = (a, d, c) and t2' = (d, b, c)::
+
+              c                    c
+            / | \\                / \\
+           a t1|t2 b    -->     a --- b       (the quad a-d-b-c, new diagonal c-d)
+            \\ | /                \\ /
+              d                    d
+    """
+    edge_tris = mesh.edge_tris
+    e = np.flatnonzero(edge_tris[:, 1] >= 0)
+    t1, t2 = edge_tris[e, 0], edge_tris[e, 1]
+    tri_edges, corners = mesh.tri_edges, mesh.corners
+    k1 = np.argmax(tri_edges[t1] == e[:, None], axis=1)
+    k2 = np.argmax(tri_edges[t2] == e[:, None], axis=1)
+    a = corners[t1, k1]
+    b = corners[t1, (k1 + 1) % 3]
+    c = corners[t1, (k1 + 2) % 3]
+    d = corners[t2, (k2 + 2) % 3]
+    return e, t1, t2, a, b, c, d
+
+
+def independent_flips(t1: NDArray, t2: NDArray, priority: NDArray, m: int) -> NDArray[np.int64]:
+    """Indices of candidates to flip together, no two touching the same triangle.
+
+    Greedy by decreasing ``priority`` (ties broken by candidate order), over
+    candidates ``(k,)`` joining triangles t1 and t2 of a mesh of m triangles.
+
+    >>> independent_flips(np.array([0, 1, 2]), np.array([1, 2, 3]), np.array([1., 3., 2.]), 4)
+    array([1])
+    """
+    order = np.argsort(-np.asarray(priority, dtype=float), kind="stable")
+    used = np.zeros(m, dtype=bool)
+    chosen = []
+    for k in order.tolist():
+        if not used[t1[k]] and not used[t2[k]]:
+            used[t1[k]] = used[t2[k]] = True
+            chosen.append(k)
+    return np.array(chosen, dtype=np.int64)
+
+
+def apply_flips(
+    corners: NDArray, chosen: NDArray, t1: NDArray, t2: NDArray, a, b, c, d
+) -> NDArray[np.int64]:
+    """New corner array ``(m, 3)`` with the chosen flips made (see :func:`flip_candidates`)."""
+    out = np.array(corners, dtype=np.int64)
+    out[t1[chosen]] = np.column_stack([a[chosen], d[chosen], c[chosen]])
+    out[t2[chosen]] = np.column_stack([d[chosen], b[chosen], c[chosen]])
+    return out

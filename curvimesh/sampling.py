@@ -73,14 +73,14 @@ def _too_close(field: MetricField, a: NDArray, b: NDArray, min_dist: float) -> N
 
     The straight segment's length bounds the shortest parabola's from above,
     so a pair whose straight length is below min_dist is close without more
-    work; the parabola is optimised only for pairs with straight length in
-    [min_dist, 1.5 min_dist] (farther pairs are taken as far).
+    work; the parabola is optimised for the others (a chord across a curved
+    anisotropic layer can be three times longer than the parabola).
     """
     if len(a) == 0:
         return np.zeros(0, dtype=bool)
     straight = parabola_length_rule(field, a, b, 0.5 * (a + b), segments=2, order=4)
     close = straight < min_dist
-    maybe = np.flatnonzero(~close & (straight < 1.5 * min_dist))
+    maybe = np.flatnonzero(~close)
     if maybe.size:
         par = shortest_parabola(
             field, a[maybe], b[maybe], scan=5, alpha_tol=2e-3, exact_length=False
@@ -119,6 +119,38 @@ def _greedy_independent(n: int, i: NDArray, j: NDArray) -> NDArray:
     return keep
 
 
+def accept_candidates(
+    field: MetricField, index: PointIndex, cand: NDArray, opt: SamplingOptions
+) -> NDArray:
+    """The tentative points ``(k, 2)`` that may join the points of ``index``, in order.
+
+    A candidate is kept if it lies strictly inside the box, at least
+    ``boundary_dist`` from every side, at least ``min_dist`` (shortest
+    parabola) from every point of the index, and from every earlier kept
+    candidate. The kept ones are returned; the index is not changed.
+    """
+    xmin, ymin, xmax, ymax = field.box
+    cand = np.asarray(cand, dtype=float).reshape(-1, 2)
+    inside = (cand[:, 0] > xmin) & (cand[:, 0] < xmax) & (cand[:, 1] > ymin) & (cand[:, 1] < ymax)
+    cand = cand[inside]
+    if len(cand):
+        cand = cand[_boundary_distance(field, cand) >= opt.boundary_dist]
+    if len(cand) == 0:
+        return cand
+    radius = opt.search * opt.min_dist * max_size(field, cand)
+    radius[~np.isfinite(radius)] = 0.0
+    # against the points kept so far
+    q, hit = index.query(cand - radius[:, None], cand + radius[:, None])
+    close = _too_close(field, cand[q], index.points[hit], opt.min_dist)
+    bad = np.zeros(len(cand), dtype=bool)
+    bad[q[close]] = True
+    cand, radius = cand[~bad], radius[~bad]
+    # among the candidates themselves, greedily in order
+    i, j = pairs_within_boxes(cand, radius)
+    close = _too_close(field, cand[i], cand[j], opt.min_dist)
+    return cand[_greedy_independent(len(cand), i[close], j[close])]
+
+
 def sample_points(
     field: MetricField,
     boundary: BoundaryMesh,
@@ -134,7 +166,6 @@ def sample_points(
     """
     opt = options or SamplingOptions()
     rng = np.random.default_rng(seed) if seed else None
-    xmin, ymin, xmax, ymax = field.box
     index = PointIndex()
     index.add(boundary.vertices)
     front = boundary.vertices
@@ -153,29 +184,9 @@ def sample_points(
             length[~np.isfinite(length)] = opt.spacing
             shot = shoot(field, starts, dirs, np.minimum(length, opt.spacing))
             ok = shot.ok
-        cand = shot.end[ok]
-        inside = (
-            (cand[:, 0] > xmin) & (cand[:, 0] < xmax) & (cand[:, 1] > ymin) & (cand[:, 1] < ymax)
-        )
-        cand = cand[inside]
-        if len(cand):
-            cand = cand[_boundary_distance(field, cand) >= opt.boundary_dist]
-        if len(cand) == 0:
+        front = accept_candidates(field, index, shot.end[ok], opt)
+        if len(front) == 0:
             break
-        radius = opt.search * opt.min_dist * max_size(field, cand)
-        radius[~np.isfinite(radius)] = 0.0
-        # against the points kept so far
-        q, hit = index.query(cand - radius[:, None], cand + radius[:, None])
-        close = _too_close(field, cand[q], index.points[hit], opt.min_dist)
-        bad = np.zeros(len(cand), dtype=bool)
-        bad[q[close]] = True
-        cand = cand[~bad]
-        radius = radius[~bad]
-        # among the candidates of this front
-        i, j = pairs_within_boxes(cand, radius)
-        close = _too_close(field, cand[i], cand[j], opt.min_dist)
-        keep = _greedy_independent(len(cand), i[close], j[close])
-        front = cand[keep]
         if rng is not None:
             front = front[rng.permutation(len(front))]
         index.add(front)

@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from curvimesh.bezier import valid_exact
 from curvimesh.curve import assemble_p2
 from curvimesh.geodesic import shortest_parabola
-from curvimesh.mesh import Mesh, p1_of
+from curvimesh.mesh import Mesh, apply_flips, flip_candidates, independent_flips, p1_of
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths_fast, metric_areas, quality_from
 
@@ -136,7 +136,7 @@ def swap(
     swaps = rounds = 0
     while rounds < max_rounds:
         cur = Mesh(pts, tris, p1.box)
-        edges, tri_edges, edge_tris = cur.edges, cur.tri_edges, cur.edge_tris
+        edges, tri_edges = cur.edges, cur.tri_edges
         pos, found = store.find(store.key(edges[:, 0], edges[:, 1]))
         assert found.all()
         emid, elen = store.mid[pos], store.length[pos]
@@ -144,14 +144,7 @@ def swap(
             metric_areas(field, _nodes(pts, tris, emid[tri_edges]), order=area_order),
             elen[tri_edges],
         )
-        cand = np.flatnonzero(edge_tris[:, 1] >= 0)
-        t1, t2 = edge_tris[cand, 0], edge_tris[cand, 1]
-        k1 = np.argmax(tri_edges[t1] == cand[:, None], axis=1)
-        k2 = np.argmax(tri_edges[t2] == cand[:, None], axis=1)
-        a = tris[t1, k1]
-        b = tris[t1, (k1 + 1) % 3]
-        c = tris[t1, (k1 + 2) % 3]
-        d = tris[t2, (k2 + 2) % 3]
+        _, t1, t2, a, b, c, d = flip_candidates(cur)
         qk = _row_keys(np.column_stack([a, b, c, d]))
         fresh = ~np.isin(qk, rejected)
         a, b, c, d, t1, t2, qk = (v[fresh] for v in (a, b, c, d, t1, t2, qk))
@@ -222,16 +215,8 @@ def swap(
         if good.size == 0:
             break
         # greedy non-conflicting selection by decreasing gain (ties: candidate order)
-        order = good[np.argsort(-gain[good], kind="stable")]
-        used = np.zeros(len(tris), dtype=bool)
-        chosen = []
-        for k in order.tolist():
-            if not used[t1[k]] and not used[t2[k]]:
-                used[t1[k]] = used[t2[k]] = True
-                chosen.append(k)
-        ch = np.array(chosen, dtype=np.int64)
-        tris[t1[ch]] = np.column_stack([a[ch], d[ch], c[ch]])
-        tris[t2[ch]] = np.column_stack([d[ch], b[ch], c[ch]])
+        ch = good[independent_flips(t1[good], t2[good], gain[good], len(tris))]
+        tris = apply_flips(tris, ch, t1, t2, a, b, c, d)
         store.add(store.key(c[ch], d[ch]), new_mid[ch], new_len[ch])
         swaps += len(ch)
         rounds += 1

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from scipy.spatial import Delaunay, QhullError
 
 from curvimesh.errors import WorkError
-from curvimesh.mesh import Mesh, signed_areas
+from curvimesh.mesh import Mesh, apply_flips, flip_candidates, independent_flips, signed_areas
 
 
 def delaunay(points: NDArray, *, box: tuple[float, float, float, float] | None = None) -> Mesh:
@@ -48,3 +48,62 @@ def delaunay(points: NDArray, *, box: tuple[float, float, float, float] | None =
             f"e.g. ({p[0]:.6g}, {p[1]:.6g}) (duplicate points?)"
         )
     return Mesh(pts, simplices, box)
+
+
+def _in_circle_metric(pa, pb, pc, pd, m: NDArray) -> NDArray:
+    """In-circle determinant of d against CCW (a, b, c) after the map x ↦ Lᵀx, M = L Lᵀ.
+
+    Positive when d lies inside the circumcircle of (a, b, c) in the metric M
+    ``(k, 2, 2)`` (the classical Delaunay predicate of Lawson's flips, applied
+    in the space where M is the identity; the map keeps orientation).
+    """
+    chol = np.linalg.cholesky(m)  # M = L Lᵀ
+
+    def tr(p):
+        return np.einsum("kji,kj->ki", chol, p - pd)  # Lᵀ (p − d)
+
+    a, b, c = tr(pa), tr(pb), tr(pc)
+    na, nb, nc = (a**2).sum(1), (b**2).sum(1), (c**2).sum(1)
+    return (
+        a[:, 0] * (b[:, 1] * nc - nb * c[:, 1])
+        - a[:, 1] * (b[:, 0] * nc - nb * c[:, 0])
+        + na * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
+    )
+
+
+def metric_delaunay(field, mesh: Mesh, *, max_rounds: int = 200) -> Mesh:
+    """Lawson flips of straight edges towards the Delaunay triangulation in the metric.
+
+    An interior edge a-b of the convex quad a-d-b-c is flipped to c-d when d
+    lies inside the circumcircle of (a, b, c) measured in the metric at the
+    quad's centroid (the same metric judges both diagonals, so an edge is never
+    flipped back in the next round unless a neighbour changed). Flips are made
+    in rounds of non-conflicting candidates, by decreasing violation, until
+    none is left or ``max_rounds``. With a constant metric this is the
+    anisotropic Delaunay triangulation (Borouchaki, George et al. 1997).
+    """
+    pts = np.asarray(mesh.points)
+    corners = np.array(mesh.corners)
+    for _ in range(max_rounds):
+        cur = Mesh(pts, corners, mesh.box)
+        _, t1, t2, a, b, c, d = flip_candidates(cur)
+        if len(a) == 0:
+            break
+        convex = (signed_areas(pts, np.column_stack([a, d, c])) > 0) & (
+            signed_areas(pts, np.column_stack([d, b, c])) > 0
+        )
+        idx = np.flatnonzero(convex)
+        centroid = 0.25 * (pts[a[idx]] + pts[b[idx]] + pts[c[idx]] + pts[d[idx]])
+        g = field.tensor(centroid)
+        det = _in_circle_metric(pts[a[idx]], pts[b[idx]], pts[c[idx]], pts[d[idx]], g)
+        # relative threshold: ignore co-circular quads (round-off)
+        scale = np.einsum("ki,kij,kj->k", pts[a[idx]] - pts[d[idx]], g, pts[a[idx]] - pts[d[idx]])
+        viol = det > 1e-10 * scale**2
+        cand = idx[viol]
+        if cand.size == 0:
+            break
+        chosen = cand[
+            independent_flips(t1[cand], t2[cand], det[viol] / scale[viol] ** 2, len(corners))
+        ]
+        corners = apply_flips(corners, chosen, t1, t2, a, b, c, d)
+    return Mesh(pts, corners, mesh.box)

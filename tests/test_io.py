@@ -476,4 +476,8 @@ def test_module_layering():
         ".errors",
         ".mesh",
     }
-    assert not {m for m in imported_modules(cio) if m.startswith(".")} - {".bezier", ".errors", ".mesh"}
+    assert not {m for m in imported_modules(cio) if m.startswith(".")} - {
+        ".bezier",
+        ".errors",
+        ".mesh",
+    }

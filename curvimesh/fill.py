@@ -1,0 +1,95 @@
+"""Filling the gaps that frontal sampling leaves where fronts meet.
+
+Algorithm 1 never puts two points closer than ``min_dist``, but where two
+fronts meet it can leave a gap up to twice as wide: the Delaunay edges across
+it come out longer than the unit range (the long edges of the paper's
+section 5.1). Here the sampled points are triangulated (Delaunay in the
+metric), and the middle node of the shortest parabola of every edge longer
+than ``max_length`` is offered as a new point, longest edges first, after the
+metric circumcentres of the triangles whose circumradius exceeds
+max_length / 2 (Delaunay refinement, Chew 1989; in a Delaunay mesh whose
+circumradii are all below max_length / 2 no edge is longer than max_length),
+under the same rules as Algorithm 1's tentative points (inside, away from the boundary,
+never closer than ``min_dist`` to any point). Rounds repeat until no point is
+added.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from curvimesh.geodesic import shortest_parabola
+from curvimesh.metric import MetricField
+from curvimesh.sampling import SamplingOptions, accept_candidates
+from curvimesh.spatial import PointIndex
+from curvimesh.triangulate import delaunay, metric_delaunay
+
+
+def metric_circumcentres(
+    field: MetricField, pts: NDArray, tris: NDArray
+) -> tuple[NDArray, NDArray]:
+    """Circumcentres ``(m, 2)`` and circumradii ``(m,)`` in the metric at the centroids.
+
+    With M = L Lᵀ at the centroid, the corners are mapped by x ↦ Lᵀx, where M
+    is the identity; the Euclidean circumcentre there is mapped back.
+    """
+    p = pts[tris[:, :3]]  # (m, 3, 2)
+    g = field.tensor(p.mean(axis=1))
+    lt = np.swapaxes(np.linalg.cholesky(g), 1, 2)  # Lᵀ
+    q = np.einsum("mij,mkj->mki", lt, p - p[:, :1])  # corners relative to corner 0, mapped
+    b, c = q[:, 1], q[:, 2]
+    d = 2.0 * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
+    nb, nc = (b**2).sum(1), (c**2).sum(1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.column_stack([(c[:, 1] * nb - b[:, 1] * nc) / d, (b[:, 0] * nc - c[:, 0] * nb) / d])
+    radius = np.hypot(u[:, 0], u[:, 1])
+    centre = p[:, 0] + np.linalg.solve(lt, u[..., None])[..., 0]
+    return centre, radius
+
+
+def fill_gaps(
+    field: MetricField,
+    points: NDArray,
+    options: SamplingOptions | None = None,
+    *,
+    max_length: float = 1.4,
+    max_rounds: int = 8,
+) -> NDArray:
+    """Points ``(n', 2)``: ``points`` ``(n, 2)`` followed by the gap-filling ones."""
+    opt = options or SamplingOptions()
+    pts = np.asarray(points, dtype=float)
+    index = PointIndex()
+    index.add(pts)
+    done_keys = np.zeros(0, dtype=np.int64)  # edges already measured and found short
+    for _ in range(max_rounds):
+        mesh = metric_delaunay(field, delaunay(pts, box=field.box))
+        e = mesh.edges
+        n = len(pts)
+        keys = e[:, 0] * n + e[:, 1]
+        fresh = ~np.isin(keys, done_keys)
+        e, keys = e[fresh], keys[fresh]
+        if len(e) == 0:
+            break
+        par = shortest_parabola(
+            field, pts[e[:, 0]], pts[e[:, 1]], scan=5, alpha_tol=2e-3, exact_length=False
+        )
+        long = par.length > max_length
+        done_keys = np.union1d(done_keys, keys[~long])
+        # Delaunay refinement: a triangle whose empty circumcircle (in the metric)
+        # has a radius above max_length / 2 can take its circumcentre.
+        centre, radius = metric_circumcentres(field, pts, mesh.triangles)
+        big = np.isfinite(radius) & (radius > 0.5 * max_length)
+        if not long.any() and not big.any():
+            break
+        by_radius = np.argsort(-radius[big], kind="stable")
+        by_length = np.argsort(-par.length[long], kind="stable")
+        cand = np.concatenate([centre[big][by_radius], par.mid[long][by_length]])
+        new = accept_candidates(field, index, cand, opt)
+        if len(new) == 0:
+            break
+        index.add(new)
+        pts = index.points
+        # node ids stay the same as points are appended: keys stay valid only if n is fixed
+        done_keys = (done_keys // n) * len(pts) + done_keys % n
+    return np.array(pts)

@@ -1,0 +1,201 @@
+"""Metric fields: the forms of SPEC section 2, intersection, derivatives, metric area."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from curvimesh.errors import MetricError
+from curvimesh.metric import (
+    UNIT_TRIANGLE_AREA,
+    density_integral,
+    intersect,
+    load_metric,
+    load_metric_text,
+)
+
+METRICS = Path(__file__).resolve().parent.parent / "metrics"
+
+
+def rand_spd(rng, n):
+    a = rng.normal(size=(n, 2, 2))
+    return a @ np.swapaxes(a, 1, 2) + 0.1 * np.eye(2)
+
+
+def test_isotropic_form():
+    fld = load_metric_text("metric: {isotropic: 0.5 + x}\n")
+    g = fld.tensor(np.array([[0.5, 0.2]]))
+    np.testing.assert_allclose(g[0], np.eye(2) / 1.0**2)
+    assert fld.box == (0.0, 0.0, 1.0, 1.0)
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.3, 1.2, -2.0])
+def test_eigen_form_puts_the_first_size_along_the_angle(angle):
+    fld = load_metric_text(f"metric:\n  eigen: {{sizes: [0.1, 0.5], angle: {angle}}}\n")
+    g = fld.tensor(np.array([[0.5, 0.5]]))[0]
+    u = np.array([math.cos(angle), math.sin(angle)])
+    w = np.array([-math.sin(angle), math.cos(angle)])
+    assert u @ g @ u == pytest.approx(1 / 0.1**2)
+    assert w @ g @ w == pytest.approx(1 / 0.5**2)
+    assert u @ g @ w == pytest.approx(0, abs=1e-9)
+
+
+def test_tensor_form_and_definitions():
+    text = """
+domain: {box: [[-1, -1], [1, 1]]}
+parameters: {a: 2}
+definitions:
+  s: a + x**2
+metric:
+  tensor: [s, 0.5, 3]
+"""
+    fld = load_metric_text(text)
+    g = fld.tensor(np.array([[0.5, 0.0]]))[0]
+    np.testing.assert_allclose(g, [[2.25, 0.5], [0.5, 3.0]])
+
+
+def test_toy_metric_is_radial_small_size_across_the_ring():
+    fld = load_metric(METRICS / "toy.yaml")
+    p = np.array([[0.5 * math.cos(0.7), 0.5 * math.sin(0.7)]])
+    g = fld.tensor(p)[0]
+    radial = np.array([math.cos(0.7), math.sin(0.7)])
+    tangential = np.array([-math.sin(0.7), math.cos(0.7)])
+    assert 1 / math.sqrt(radial @ g @ radial) == pytest.approx(0.01)
+    assert 1 / math.sqrt(tangential @ g @ tangential) == pytest.approx(0.3)
+
+
+def test_toy_metric_is_defined_at_its_centre():
+    fld = load_metric(METRICS / "toy.yaml")
+    g, dg = fld.evaluate(np.array([[0.0, 0.0]]), derivatives=True)
+    assert np.isfinite(g).all() and np.isfinite(dg).all()
+
+
+def test_toy_ideal_triangle_count_against_an_independent_quadrature():
+    # sqrt(det g) = 1 / (lmin lmax) in closed form; midpoint rule on a fine grid.
+    n = 4000
+    h = 4.0 / n
+    c = -2 + h * (np.arange(n) + 0.5)
+    total = 0.0
+    for row in np.array_split(c, 8):
+        x, y = np.meshgrid(c, row)
+        r = np.hypot(x, y)
+        lmin = 0.01 + 0.3 * (1 - np.exp(-(((r - 0.5) / (1 / math.sqrt(10))) ** 2)))
+        total += np.sum(1.0 / (lmin * 0.3)) * h * h
+    fld = load_metric(METRICS / "toy.yaml")
+    ours = density_integral(fld)
+    assert ours == pytest.approx(total, rel=1e-5)
+    assert ours / UNIT_TRIANGLE_AREA == pytest.approx(761.8, abs=0.1)
+
+
+def test_intersection_of_a_metric_with_itself_is_itself():
+    rng = np.random.default_rng(1)
+    m = rand_spd(rng, 50)
+    np.testing.assert_allclose(intersect(m, m).real, m, rtol=1e-10, atol=1e-12)
+
+
+def test_intersection_contains_both_and_is_the_smallest_such():
+    rng = np.random.default_rng(2)
+    m1, m2 = rand_spd(rng, 200), rand_spd(rng, 200)
+    m = intersect(m1, m2).real
+    v = rng.normal(size=(200, 2))
+    q = np.einsum("pi,pij,pj->p", v, m, v)
+    q1 = np.einsum("pi,pij,pj->p", v, m1, v)
+    q2 = np.einsum("pi,pij,pj->p", v, m2, v)
+    assert (q >= np.maximum(q1, q2) * (1 - 1e-9)).all()
+    # simultaneous reduction: along each common eigenvector it equals the larger one
+    _w, vec = np.linalg.eig(np.linalg.solve(m1, m2))
+    for k in range(2):
+        e = vec[:, :, k].real
+        qm = np.einsum("pi,pij,pj->p", e, m, e)
+        qa = np.einsum("pi,pij,pj->p", e, m1, e)
+        qb = np.einsum("pi,pij,pj->p", e, m2, e)
+        np.testing.assert_allclose(qm, np.maximum(qa, qb), rtol=1e-8)
+
+
+def test_nested_metrics_intersect_to_the_larger():
+    m1 = np.array([[[4.0, 1.0], [1.0, 3.0]]])
+    m2 = 0.5 * m1
+    np.testing.assert_allclose(intersect(m1, m2).real, m1)
+    np.testing.assert_allclose(intersect(m2, m1).real, m1)
+
+
+def test_intersection_items_override_parameters_and_reuse_outer_definitions():
+    text = """
+parameters: {h: 1.0}
+definitions:
+  size: h * (1 + x)
+metric:
+  intersection:
+    - isotropic: size
+    - parameters: {h: 0.5}
+      isotropic: size
+"""
+    fld = load_metric_text(text)
+    g = fld.tensor(np.array([[1.0, 0.0]]))[0]
+    np.testing.assert_allclose(g, np.eye(2) / (0.5 * 2.0) ** 2)
+    assert len(fld.components) == 2
+
+
+@pytest.mark.parametrize("name", ["toy", "three_toys", "quartic", "quartic2"])
+def test_derivatives_match_central_differences(name):
+    fld = load_metric(METRICS / f"{name}.yaml")
+    rng = np.random.default_rng(3)
+    p = rng.uniform(-1.9, 1.9, (400, 2))
+    _, dg = fld.evaluate(p, derivatives=True)
+    h = 1e-6
+    for k in range(2):
+        e = np.zeros(2)
+        e[k] = h
+        fd = (fld.tensor(p + e) - fld.tensor(p - e)) / (2 * h)
+        scale = np.abs(dg).max(axis=(1, 2, 3)) + np.abs(fld.tensor(p)).max(axis=(1, 2))
+        err = np.abs(fd - dg[..., k]).max(axis=(1, 2)) / scale
+        # the intersection has kinks: allow a few points within h of one
+        assert np.mean(err < 1e-5) > 0.99
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    st.floats(0.05, 2.0),
+    st.floats(0.05, 2.0),
+    st.floats(-3.2, 3.2),
+    st.floats(0.05, 2.0),
+    st.floats(0.05, 2.0),
+    st.floats(-3.2, 3.2),
+)
+def test_intersection_derivative_is_exact_where_smooth(h1, h2, a1, k1, k2, a2):
+    text = f"""
+metric:
+  intersection:
+    - eigen: {{sizes: [{h1} * (1 + x), {h2}], angle: {a1} + y}}
+    - eigen: {{sizes: [{k1}, {k2} * (1 + y*x)], angle: {a2}}}
+"""
+    fld = load_metric_text(text)
+    p = np.array([[0.3, 0.6]])
+    _, dg = fld.evaluate(p, derivatives=True)
+    h = 1e-6
+    for k in range(2):
+        e = np.zeros(2)
+        e[k] = h
+        gp, gm = fld.tensor(p + e), fld.tensor(p - e)
+        fd = (gp - gm) / (2 * h)
+        # one-sided differences agree when the point is not on a kink
+        fwd = (gp - fld.tensor(p)) / h
+        bwd = (fld.tensor(p) - gm) / h
+        scale = np.abs(fd).max() + 1.0
+        if np.abs(fwd - bwd).max() < 1e-3 * scale:
+            assert np.abs(fd - dg[..., k]).max() < 1e-5 * scale
+
+
+def test_non_spd_point_is_named():
+    with pytest.raises(MetricError, match=r"\(0\.5, 0\.5\)|not finite and positive"):
+        load_metric_text("metric: {tensor: [1, 2, 1]}\n", source="m.yaml")
+
+
+def test_negative_size_is_an_error():
+    with pytest.raises(MetricError, match="size is not finite and positive"):
+        load_metric_text("metric: {isotropic: x - 0.5}\n", source="m.yaml")

@@ -1,0 +1,212 @@
+"""The adapt pipeline, stage by stage and end to end, against known answers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import strategies as st
+
+from curvimesh import adapt as pipeline
+from curvimesh.bezier import jacobian_bezier
+from curvimesh.boundary import corner_edge_lengths, discretize_box, halving_points
+from curvimesh.geodesic import parabola_length
+from curvimesh.mesh import Mesh
+from curvimesh.metric import UNIT_TRIANGLE_AREA, load_metric_text
+from curvimesh.quality import edge_lengths
+from curvimesh.report import mesh_report
+
+
+def slow_check(mesh: Mesh) -> None:
+    """Plain-loop invariants: conforming, every edge node shared, all Bezier coefficients > 0."""
+    edges: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for t, tri in enumerate(mesh.triangles.tolist()):
+        for k in range(3):
+            a, b, m = tri[k], tri[(k + 1) % 3], tri[3 + k]
+            edges.setdefault((min(a, b), max(a, b)), []).append((t, m, a < b))
+    for held in edges.values():
+        assert len(held) <= 2
+        if len(held) == 2:
+            (_, m1, s1), (_, m2, s2) = held
+            assert m1 == m2, "the two triangles of an edge use different edge nodes"
+            assert s1 != s2, "an interior edge runs the same way in both triangles"
+    for tri in mesh.triangles.tolist():
+        b = jacobian_bezier(mesh.points[np.array(tri)][None])[0]
+        assert min(b) > 0 or _exact_positive(mesh.points[np.array(tri)])
+
+
+def _exact_positive(nodes: np.ndarray) -> bool:
+    """Dense sampling of J as a last word for triangles the sufficient test leaves open."""
+    from curvimesh.bezier import p2_jacobian
+
+    s = np.linspace(0, 1, 81)
+    u, v = np.meshgrid(s, s)
+    keep = u + v <= 1
+    uv = np.column_stack([u[keep], v[keep]])
+    return bool(p2_jacobian(nodes[None], uv).min() > 0)
+
+
+def box_boundary_is_covered(mesh: Mesh, box) -> bool:
+    """The boundary edges lie on the box sides and add up to its perimeter."""
+    pts = mesh.points
+    e = mesh.edges[mesh.boundary_edges]
+    a, b = pts[e[:, 0]], pts[e[:, 1]]
+    total = np.hypot(*(b - a).T).sum()
+    xmin, ymin, xmax, ymax = box
+    return math.isclose(total, 2 * (xmax - xmin) + 2 * (ymax - ymin), rel_tol=1e-9)
+
+
+CONSTANT = """
+domain: {box: [[0, 0], [2, 1]]}
+metric:
+  eigen: {sizes: [0.08, 0.2], angle: 0.5}
+"""
+
+
+@pytest.fixture(scope="module")
+def constant_result():
+    fld = load_metric_text(CONSTANT)
+    return fld, pipeline.adapt(fld)
+
+
+def test_boundary_edges_are_quasi_unit_and_midnodes_halve_them():
+    fld = load_metric_text(CONSTANT)
+    bnd = discretize_box(fld)
+    v = bnd.vertices
+    nxt = np.roll(v, -1, axis=0)
+    lengths = parabola_length(fld, v, nxt)
+    assert lengths.min() > 0.7 and lengths.max() < 1.4
+    # equal within a side
+    for side in range(4):
+        s = lengths[bnd.sides == side]
+        assert np.ptp(s) < 1e-4 * s.mean()
+    half = parabola_length(fld, v, bnd.midnodes)
+    np.testing.assert_allclose(half, lengths / 2, rtol=1e-4)
+    np.testing.assert_allclose(halving_points(fld, v, nxt), bnd.midnodes, atol=1e-6)
+
+
+def test_constant_metric_mesh_is_unit_and_near_the_ideal_count(constant_result):
+    fld, res = constant_result
+    mesh = res.mesh
+    slow_check(mesh)
+    assert box_boundary_is_covered(mesh, fld.box)
+    lengths = edge_lengths(fld, mesh.points, mesh.edges, mesh.edge_mid)
+    assert lengths.min() >= 0.7 - 1e-9
+    assert np.mean((lengths >= 0.7) & (lengths <= 1.4)) > 0.95
+    ideal = (2.0 / (0.08 * 0.2)) / UNIT_TRIANGLE_AREA
+    assert 0.8 * ideal < len(mesh.triangles) < 1.25 * ideal
+    # a constant metric has straight geodesics: the optimal parabolas are straight
+    mid = 0.5 * (mesh.points[mesh.edges[:, 0]] + mesh.points[mesh.edges[:, 1]])
+    offset = np.abs(mesh.points[mesh.edge_mid] - mid).max()
+    assert offset < 1e-3 * 0.08
+
+
+def test_report_of_the_constant_mesh(constant_result):
+    fld, res = constant_result
+    rep = mesh_report(fld, res.mesh)
+    assert rep["valid"] and rep["invalid_triangles"] == 0
+    assert rep["metric_area"] == pytest.approx(2.0 / (0.08 * 0.2), rel=1e-9)
+    assert rep["triangles"] == len(res.mesh.triangles)
+    # Euler: V - E + F = 1 for a disc
+    assert rep["vertices"] - rep["edges"] + rep["triangles"] == 1
+    assert rep["nodes"] == rep["vertices"] + rep["edges"]
+    assert rep["quality"]["min"] > 0.5
+
+
+def test_stages_chain_to_the_same_mesh_as_adapt(constant_result):
+    fld, res = constant_result
+    cloud = pipeline.sample(fld)
+    p1 = pipeline.triangulate(cloud, fld)
+    p2 = pipeline.curve(fld, p1)
+    final = pipeline.swap(fld, p2).mesh
+    np.testing.assert_array_equal(final.points, res.mesh.points)
+    np.testing.assert_array_equal(final.triangles, res.mesh.triangles)
+
+
+def test_curve_backtracks_to_validity():
+    # a strongly varying metric on a coarse straight mesh: curving naively would invert
+    fld = load_metric_text(
+        """
+domain: {box: [[-1, -1], [1, 1]]}
+definitions:
+  r: sqrt(x**2 + y**2)
+metric:
+  eigen:
+    sizes: ["0.02 + 0.3*(1 - exp(-((r - 0.5)/0.2)**2))", 0.3]
+    angle: atan2(y, x)
+"""
+    )
+    g = np.linspace(-1, 1, 9)
+    X, Y = np.meshgrid(g, g)
+    pts = np.column_stack([X.ravel(), Y.ravel()])
+    p1 = pipeline.triangulate(Mesh(pts, np.zeros((0, 3), int), fld.box))
+    p2 = pipeline.curve(fld, p1)
+    slow_check(p2)
+
+
+@settings(
+    max_examples=6,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+    phases=[Phase.explicit, Phase.reuse, Phase.generate],  # shrinking a mesh run is too slow
+)
+@given(
+    h1=st.floats(0.12, 0.4),
+    ratio=st.floats(1.0, 6.0),
+    angle=st.floats(-math.pi, math.pi),
+    wave=st.floats(0.0, 0.5),
+    freq=st.floats(0.5, 3.0),
+)
+def test_any_smooth_metric_gives_a_valid_conforming_mesh(h1, ratio, angle, wave, freq):
+    text = f"""
+domain: {{box: [[0, 0], [2, 1.5]]}}
+metric:
+  eigen:
+    sizes: [{h1 / ratio} * (1 + {wave} * sin({freq} * x)), {h1}]
+    angle: {angle} + {wave} * cos({freq} * y)
+"""
+    fld = load_metric_text(text)
+    mesh = pipeline.adapt(fld).mesh
+    slow_check(mesh)
+    assert box_boundary_is_covered(mesh, fld.box)
+    lengths = edge_lengths(fld, mesh.points, mesh.edges, mesh.edge_mid)
+    # Short edges are allowed only across a corner too sharp in the metric for
+    # boundary edges of at most 1.5 (boundary.corner_edge_lengths caps there).
+    needed = corner_edge_lengths(fld, target=1.0, min_dist=0.7, max_length=np.inf)
+    xmin, ymin, xmax, ymax = fld.box
+    corners = np.array([[xmin, ymin], [xmax, ymin], [xmax, ymax], [xmin, ymax]])
+    sharp = corners[needed > 1.5]
+    for i in np.flatnonzero(lengths < 0.7):
+        a, b = mesh.points[mesh.edges[i]]
+        near = [c for c in sharp if _on_sides_of(a, b, c, fld.box)]
+        assert near, f"short edge {lengths[i]:.3f} away from any sharp corner"
+
+
+def _on_sides_of(a, b, corner, box) -> bool:
+    """Both points on the two box sides through ``corner`` (one on each)."""
+
+    def sides(p):
+        return {
+            k
+            for k, v in (
+                (0, p[1] - box[1]),
+                (1, p[0] - box[2]),
+                (2, p[1] - box[3]),
+                (3, p[0] - box[0]),
+            )
+            if abs(v) < 1e-12
+        }
+
+    at = sides(corner)
+    sa, sb = sides(a), sides(b)
+    return bool(sa & at) and bool(sb & at) and sa != sb
+
+
+def test_max_vertices_fails_fast():
+    from curvimesh.errors import InputError
+
+    fld = load_metric_text("metric: {isotropic: 0.001}\n", source="fine.yaml")
+    with pytest.raises(InputError, match="about 1,154,701 vertices"):
+        pipeline.adapt(fld, pipeline.AdaptOptions(max_vertices=1000))
