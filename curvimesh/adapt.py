@@ -42,6 +42,7 @@ class AdaptOptions:
     max_vertices: int = MAX_VERTICES
     max_swap_rounds: int = 200
     fill: bool = True
+    straight: bool = False
 
 
 def estimated_vertices(metric_area: float) -> float:
@@ -81,15 +82,16 @@ def triangulate(points: Mesh, fld: MetricField | None = None) -> Mesh:
     return metric_delaunay(fld, mesh) if fld is not None else mesh
 
 
-def curve(fld: MetricField, mesh: Mesh) -> Mesh:
+def curve(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> Mesh:
     """Stage 3: P2 edge nodes on geodesic parabolas, backtracked to validity."""
-    return _curve.curve(fld, mesh)
+    opt = options or AdaptOptions()
+    return _curve.curve(fld, mesh, straight=opt.straight)
 
 
 def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> _swap.SwapResult:
     """Stage 4: curvilinear edge swaps driven by quality (4)."""
     opt = options or AdaptOptions()
-    return _swap.swap(fld, mesh, max_rounds=opt.max_swap_rounds)
+    return _swap.swap(fld, mesh, max_rounds=opt.max_swap_rounds, straight=opt.straight)
 
 
 @dataclass(frozen=True)
@@ -119,7 +121,7 @@ def adapt(
     seconds["triangulate"] = time.perf_counter() - t
     progress(f"triangulate: {len(p1.triangles)} triangles ({seconds['triangulate']:.1f} s)")
     t = time.perf_counter()
-    p2 = curve(fld, p1)
+    p2 = curve(fld, p1, opt)
     seconds["curve"] = time.perf_counter() - t
     progress(f"curve: done ({seconds['curve']:.1f} s)")
     t = time.perf_counter()

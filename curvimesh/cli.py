@@ -83,6 +83,11 @@ def command(fn: Callable) -> Callable:
             if verbose:
                 traceback.print_exc()
             _fail(f"{type(exc).__name__}: the work is too large", 1)
+        except Exception as exc:  # a bug of ours: still one line, traceback with -v
+            if verbose:
+                traceback.print_exc()
+            msg = str(exc).splitlines()[0] if str(exc) else ""
+            _fail(f"internal error ({type(exc).__name__}: {msg}); run with -v for details", 1)
         finally:
             signal.signal(signal.SIGTERM, old)
 
@@ -115,6 +120,12 @@ def output_option(fn: Callable) -> Callable:
 
 def input_argument(fn: Callable) -> Callable:
     return click.argument("mesh_path", metavar="MESH", type=click.Path())(fn)
+
+
+def straight_option(fn: Callable) -> Callable:
+    return click.option(
+        "--straight", is_flag=True, help="Keep every edge straight (to compare with curved)."
+    )(fn)
 
 
 def seed_option(fn: Callable) -> Callable:
@@ -235,26 +246,29 @@ def triangulate(ctx: Context, mesh_path, metric_path, output, fmt) -> None:
 @input_argument
 @metric_option()
 @output_option
+@straight_option
 @command
-def curve(ctx: Context, mesh_path, metric_path, output, fmt) -> None:
+def curve(ctx: Context, mesh_path, metric_path, output, fmt, straight) -> None:
     """Stage 3: P2 nodes on geodesic parabolas, backtracked to validity."""
     fld = load_metric(metric_path)
     mesh = _require_triangles(_read(mesh_path, fld), mesh_path)
-    write_mesh(output, pipeline.curve(fld, mesh), fmt=fmt)
+    opt = pipeline.AdaptOptions(straight=straight)
+    write_mesh(output, pipeline.curve(fld, mesh, opt), fmt=fmt)
 
 
 @main.command()
 @input_argument
 @metric_option()
 @output_option
+@straight_option
 @command
-def swap(ctx: Context, mesh_path, metric_path, output, fmt) -> None:
+def swap(ctx: Context, mesh_path, metric_path, output, fmt, straight) -> None:
     """Stage 4: curvilinear edge swaps driven by quality (4)."""
     fld = load_metric(metric_path)
     mesh = _require_triangles(_read(mesh_path, fld), mesh_path)
     if mesh.order != 2:
         raise InputError(f"{mesh_path}: swap needs a P2 (triangle6) mesh; run curve first")
-    res = pipeline.swap(fld, mesh)
+    res = pipeline.swap(fld, mesh, pipeline.AdaptOptions(straight=straight))
     ctx.progress(f"swap: {res.swaps} swaps in {res.rounds} rounds")
     write_mesh(output, res.mesh, fmt=fmt)
 
@@ -283,11 +297,14 @@ def _require_triangles(mesh, path: str):
     show_default=True,
     help="Fail fast above this estimated vertex count.",
 )
+@straight_option
 @command
-def adapt(ctx: Context, metric_path, output, fmt, seed, stats_path, max_vertices) -> None:
+def adapt(
+    ctx: Context, metric_path, output, fmt, seed, stats_path, max_vertices, straight
+) -> None:
     """All stages: sample | triangulate | curve | swap, in one process."""
     fld = load_metric(metric_path)
-    opt = pipeline.AdaptOptions(seed=seed, max_vertices=max_vertices)
+    opt = pipeline.AdaptOptions(seed=seed, max_vertices=max_vertices, straight=straight)
     t0 = time.perf_counter()
     res = pipeline.adapt(fld, opt, progress=ctx.progress)
     total = time.perf_counter() - t0

@@ -73,12 +73,15 @@ def backtrack_to_valid(
         rounds += 1
 
 
-def curve(field, mesh: Mesh) -> Mesh:
+def curve(field, mesh: Mesh, *, straight: bool = False) -> Mesh:
     """The P2 mesh of ``mesh``'s corners with every edge on its geodesic parabola.
 
     Input: a P1 (or P2, whose edge nodes are recomputed) mesh with
     counter-clockwise triangles. Output: a valid P2 mesh, corners first
-    (same numbering as ``p1_of(mesh)``), then one node per edge.
+    (same numbering as ``p1_of(mesh)``), then one node per edge. With
+    ``straight`` every edge node is the midpoint (boundary nodes still halve
+    the metric length along their side): the straight-sided mesh to compare
+    curved meshes with.
     """
     p1 = p1_of(mesh) if mesh.order == 2 else mesh
     pts = np.asarray(p1.points)
@@ -88,7 +91,9 @@ def curve(field, mesh: Mesh) -> Mesh:
     if on_side.any():
         mids[on_side] = halving_points(field, x0[on_side], x1[on_side])
     inner = ~on_side
-    if inner.any():
+    if straight:
+        mids[inner] = 0.5 * (x0[inner] + x1[inner])
+    elif inner.any():
         par = shortest_parabola(field, x0[inner], x1[inner], exact_length=False)
         mids[inner] = par.mid
     mids, _ = backtrack_to_valid(p1, pts, mids, inner)

@@ -106,11 +106,13 @@ def swap(
     max_rounds: int = 200,
     min_gain: float = 1e-6,
     area_order: int = 4,
+    straight: bool = False,
 ) -> SwapResult:
     """Curvilinear edge swaps until no swap improves (see the module docstring).
 
     ``mesh`` is a valid P2 mesh; its edge nodes are kept for the edges that
-    stay. Returns a valid P2 mesh on the same corners.
+    stay. Returns a valid P2 mesh on the same corners. With ``straight`` the
+    new edges are straight (the classical swap of a straight-sided mesh).
     """
     p1 = p1_of(mesh)
     pts = np.asarray(p1.points)
@@ -154,24 +156,27 @@ def swap(
         ncd = store.key(c, d)
         _, found = optimal.find(ncd)
         need = np.unique(ncd[~found])
-        if need.size:
+        if need.size and straight:
+            ilo, ihi = need // n, need % n
+            optimal.add(need, 0.5 * (pts[ilo] + pts[ihi]), np.zeros(len(need)))
+        elif need.size:
             ilo, ihi = need // n, need % n
             par = shortest_parabola(field, pts[ilo], pts[ihi], exact_length=False)
             optimal.add(need, par.mid, par.length)
         opt_mid = optimal.mid[optimal.find(ncd)[0]]
-        straight = 0.5 * (pts[c] + pts[d])
+        seg_mid = 0.5 * (pts[c] + pts[d])
         # outer edges' nodes: t1' = (a, d, c) edges ad, dc, ca; t2' = (d, b, c) edges db, bc, cd
         m_ad = store.mid[store.find(store.key(a, d))[0]]
         m_ca = store.mid[store.find(store.key(c, a))[0]]
         m_db = store.mid[store.find(store.key(d, b))[0]]
         m_bc = store.mid[store.find(store.key(b, c))[0]]
         level = np.full(len(a), -1)
-        new_mid = straight.copy()
+        new_mid = seg_mid.copy()
         for li, s in enumerate(BACKTRACK):
             todo = level < 0
             if not todo.any():
                 break
-            m_cd = straight[todo] + s * (opt_mid[todo] - straight[todo])
+            m_cd = seg_mid[todo] + s * (opt_mid[todo] - seg_mid[todo])
             n1 = _nodes(
                 pts,
                 np.column_stack([a, d, c])[todo],
