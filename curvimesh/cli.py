@@ -16,15 +16,16 @@ import sys
 import time
 import traceback
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import click
 import numpy as np
 
 from curvimesh import adapt as pipeline
-from curvimesh.errors import CurvimeshError, InputError
+from curvimesh.errors import CurvimeshError, InputError, WorkError
 from curvimesh.geodesic import parabola_length, shoot, shortest_parabola
-from curvimesh.io import FORMATS, atomic_write_text, read_mesh, write_mesh
+from curvimesh.io import FORMATS, atomic_output, check_writable, read_mesh, write_mesh
 from curvimesh.metric import (
     UNIT_TRIANGLE_AREA,
     MetricField,
@@ -54,8 +55,13 @@ class Context:
             click.echo(f"curvimesh: {msg}", err=True)
 
 
+#: The options that name output files: checked before any work is done.
+OUTPUT_OPTIONS = ("output", "stats_path", "plot_path")
+
+
 def _fail(msg: str, code: int) -> None:
-    click.echo(f"curvimesh: error: {msg}", err=True)
+    one_line = " ".join(msg.splitlines())
+    click.echo(f"curvimesh: error: {one_line}", err=True)
     sys.exit(code)
 
 
@@ -70,6 +76,9 @@ def command(fn: Callable) -> Callable:
         ctx.verbose, ctx.quiet = verbose, quiet
         old = signal.signal(signal.SIGTERM, _on_sigterm)
         try:
+            for name in OUTPUT_OPTIONS:
+                if kwargs.get(name):
+                    check_writable(kwargs[name])
             fn(ctx, *args, **kwargs)
         except CurvimeshError as exc:
             if verbose:
@@ -99,7 +108,7 @@ def metric_option(required: bool = True) -> Callable:
         "--metric",
         "metric_path",
         required=required,
-        type=click.Path(dir_okay=False),
+        type=click.Path(),
         help="Metric YAML file (SPEC section 2).",
     )
 
@@ -146,7 +155,7 @@ def _read(path: str, fld: MetricField | None = None):
 
 
 @main.command("check-metric")
-@click.argument("metric_path", metavar="METRIC", type=click.Path(dir_okay=False))
+@click.argument("metric_path", metavar="METRIC", type=click.Path())
 @command
 def check_metric(ctx: Context, metric_path: str) -> None:
     """Parse and validate a metric file, sample it and print a summary."""
@@ -239,7 +248,13 @@ def triangulate(ctx: Context, mesh_path, metric_path, output, fmt) -> None:
     """Stage 2: Delaunay triangulation of the points; writes triangle (P1) cells."""
     fld = load_metric(metric_path) if metric_path else None
     cloud = _read(mesh_path, fld)
-    write_mesh(output, pipeline.triangulate(cloud, fld), fmt=fmt)
+    if len(cloud.points) < 3:
+        raise InputError(f"{mesh_path}: {len(cloud.points)} node(s); at least 3 are needed")
+    try:
+        mesh = pipeline.triangulate(cloud, fld)
+    except WorkError as exc:  # Qhull failed on these points (all collinear, duplicates)
+        raise InputError(f"{mesh_path}: cannot triangulate the nodes: {exc}") from None
+    write_mesh(output, mesh, fmt=fmt)
 
 
 @main.command()
@@ -299,9 +314,7 @@ def _require_triangles(mesh, path: str):
 )
 @straight_option
 @command
-def adapt(
-    ctx: Context, metric_path, output, fmt, seed, stats_path, max_vertices, straight
-) -> None:
+def adapt(ctx: Context, metric_path, output, fmt, seed, stats_path, max_vertices, straight) -> None:
     """All stages: sample | triangulate | curve | swap, in one process."""
     fld = load_metric(metric_path)
     opt = pipeline.AdaptOptions(seed=seed, max_vertices=max_vertices, straight=straight)
@@ -316,9 +329,14 @@ def adapt(
             **{k: round(v, 4) for k, v in res.seconds.items()},
             "total": round(total, 4),
         }
-    write_mesh(output, res.mesh, fmt=fmt)
-    if stats is not None:
-        atomic_write_text(stats_path, json.dumps(stats, indent=2) + "\n")
+    if stats is None:
+        write_mesh(output, res.mesh, fmt=fmt)
+        return
+    # The stats go to their temporary file first: if either write fails, neither
+    # output is replaced (short of a failing rename).
+    with atomic_output(stats_path) as tmp:
+        Path(tmp).write_text(json.dumps(stats, indent=2) + "\n", encoding="utf-8")
+        write_mesh(output, res.mesh, fmt=fmt)
 
 
 @main.command()

@@ -35,21 +35,27 @@ Safety bounds, so that no input can hang the parser or exhaust memory:
 - ``min``/``max`` of symbolic arguments are built as a balanced tree of binary,
   unevaluated ``Min``/``Max`` (sympy's n-ary simplification is quadratic);
 - ``diff`` may differentiate at most :data:`MAX_DIFF_WORK` sympy nodes in one
-  expression (differentiation cost grows with the operand, and fast);
+  expression (the cost of a derivative grows quickly with its operand);
+- building an expression may take at most :data:`TIME_LIMIT` seconds (sympy's
+  automatic simplification can take minutes on crafted input);
 - the result has at most :data:`MAX_SIZE` sympy nodes, nested at most
   :data:`MAX_TREE_DEPTH` deep (sympy's printers and lambdify recurse), once the
-  definitions in ``names`` are substituted, and holds no ``zoo``, ``oo``,
-  ``nan``, ``I`` nor a number outside the double range.
+  definitions in ``names`` are substituted; no node built on the way holds
+  ``zoo``, ``oo``, ``nan``, ``I`` or a Float beyond the double range (a constant
+  that underflows becomes its double value).
 """
 
 from __future__ import annotations
 
 import ast
+import contextlib
+import ctypes
 import difflib
 import math
 import operator
+import threading
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import NamedTuple
@@ -71,6 +77,7 @@ __all__ = [
     "MAX_SIZE",
     "MAX_TREE_DEPTH",
     "RESERVED",
+    "TIME_LIMIT",
     "Builtin",
     "expression_symbols",
     "parse_expression",
@@ -94,6 +101,8 @@ MAX_EXPONENT = 64
 """Largest numerator or denominator of an exponent that is kept exact."""
 MAX_EXACT_BITS = 2048
 """Largest exact rational (in bits of numerator or denominator) a power may create."""
+TIME_LIMIT = 1.0
+"""Default bound on the seconds (wall clock) spent building one expression."""
 
 _QUOTE_LENGTH = 60
 
@@ -151,9 +160,9 @@ def _extremum(cls: type[sympy.Min] | type[sympy.Max]) -> Callable[..., sympy.Exp
     def build(*args: sympy.Expr) -> sympy.Expr:
         level = list(args)
         while len(level) > 1:
-            pairs = zip(level[::2], level[1::2])
             odd = level[-1:] if len(level) % 2 else []
-            level = [cls(a, b, evaluate=False) for a, b in pairs] + odd
+            pairs = range(0, len(level) - 1, 2)
+            level = [cls(level[i], level[i + 1], evaluate=False) for i in pairs] + odd
         return level[0]
 
     return build
@@ -268,7 +277,12 @@ _FORBIDDEN: dict[type[ast.AST], str] = {
 # -- public API ----------------------------------------------------------------
 
 
-def parse_expression(text: str | int | float, names: Mapping[str, sympy.Expr]) -> sympy.Expr:
+def parse_expression(
+    text: str | int | float,
+    names: Mapping[str, sympy.Expr],
+    *,
+    time_limit: float | None = TIME_LIMIT,
+) -> sympy.Expr:
     """Parse an expression of a metric file into a sympy expression.
 
     ``text`` is the expression as written (a number read from YAML is accepted
@@ -277,6 +291,8 @@ def parse_expression(text: str | int | float, names: Mapping[str, sympy.Expr]) -
     parameters as numbers, earlier definitions as expressions; its keys take
     precedence over :data:`CONSTANTS`. ``diff(E, x)`` differentiates with
     respect to ``names["x"]`` (a fresh real Symbol ``x`` if that is not a Symbol).
+    ``time_limit`` bounds the seconds spent building the expression (None: no
+    bound; see :data:`TIME_LIMIT`).
 
     Returns a sympy expression in the symbols that come through ``names``.
     Raises :class:`ExpressionError` with a one-line message (without file or
@@ -300,37 +316,31 @@ def parse_expression(text: str | int | float, names: Mapping[str, sympy.Expr]) -
     for key, value in names.items():
         if isinstance(value, bool) or not isinstance(value, (sympy.Expr, int, float)):
             raise TypeError(f"names[{key!r}] is a {type(value).__name__}, not a sympy Expr")
-    if not isinstance(text, str):
-        parser = _Parser(repr(text), names)
-        result = parser.number(text, None)
-    else:
-        text = text.strip()
-        parser = _Parser(text, names)
-        tree = _parse(text)
+    source = text.strip() if isinstance(text, str) else repr(text)
+    parser = _Parser(source, names)
+    tree = None
+    if isinstance(text, str):
+        tree = _parse(source)
         _check_shape(tree)
         parser.check(tree.body)
-        try:
-            result = parser.build(tree.body)
-        except ExpressionError:
-            raise
-        except RecursionError:
-            raise ExpressionError(f"expression is nested too deeply: {_quote(text)}") from None
-        except Exception as exc:  # sympy raises assorted types on odd input; report one line
-            reason = _one_line(f"{type(exc).__name__}: {exc}")
-            raise ExpressionError(f"cannot evaluate {_quote(text)}: {reason}") from exc
-    facts = parser.facts(result.expr)
-    if facts.size > MAX_SIZE:
+    try:
+        with _time_limit(time_limit):
+            if tree is None:
+                result = parser.number(text, None)  # type: ignore[arg-type]  # int or float
+            else:
+                result = parser.build(tree.body)
+            parser.check_result(result.expr)
+    except ExpressionError:
+        raise
+    except _OutOfTime:
         raise ExpressionError(
-            f"expression is too large once its names are substituted "
-            f"(more than {MAX_SIZE} nodes): {parser.quote(None)}"
-        )
-    if facts.depth > MAX_TREE_DEPTH:
-        raise ExpressionError(
-            f"expression is nested too deeply once its names are substituted "
-            f"(more than {MAX_TREE_DEPTH} levels): {parser.quote(None)}"
-        )
-    if facts.bad is not None:
-        raise ExpressionError(f"{parser.quote(None)} {facts.bad}")
+            f"expression takes too long to build (more than {time_limit} s): {_quote(source)}"
+        ) from None
+    except RecursionError:
+        raise ExpressionError(f"expression is nested too deeply: {_quote(source)}") from None
+    except Exception as exc:  # sympy raises assorted types on odd input; report one line
+        reason = _one_line(f"{type(exc).__name__}: {exc}")
+        raise ExpressionError(f"cannot evaluate {_quote(source)}: {reason}") from exc
     return result.expr
 
 
@@ -380,7 +390,7 @@ def _parse(text: str) -> ast.Expression:
                 where = f" at line {exc.lineno}, column {exc.offset}"
         reason = _one_line(exc.msg or "invalid syntax")
         raise ExpressionError(f"syntax error{where}: {reason} in {_quote(text)}") from None
-    except ValueError as exc:  # a null character, before Python 3.12
+    except ValueError as exc:  # a null character, on some Python versions
         raise ExpressionError(f"syntax error: {_one_line(str(exc))}") from None
     except (RecursionError, MemoryError):
         raise ExpressionError(f"expression is nested too deeply: {_quote(text)}") from None
@@ -399,6 +409,59 @@ def _check_shape(tree: ast.Expression) -> None:
             raise ExpressionError(f"expression is nested too deeply (more than {MAX_DEPTH} levels)")
         for child in ast.iter_child_nodes(node):
             stack.append((child, depth + isinstance(child, ast.expr)))
+
+
+# -- the time limit --------------------------------------------------------------
+
+
+class _OutOfTime(BaseException):
+    """Raised inside sympy when the time limit is reached.
+
+    A BaseException, so that sympy's own ``except Exception`` clauses let it through.
+    """
+
+
+@contextlib.contextmanager
+def _time_limit(seconds: float | None) -> Iterator[None]:
+    """Interrupt the code run inside after ``seconds`` (wall clock) with :class:`_OutOfTime`.
+
+    Some simplifications sympy makes while an expression is built (assumption
+    queries that end in polynomial gcds, for instance) take minutes on crafted
+    input, and no bound on the text prevents it. A timer thread raises
+    :class:`_OutOfTime` asynchronously in this thread once the time is up
+    (CPython's ``PyThreadState_SetAsyncExc``); this costs nothing until then,
+    unlike a profile hook. An exception still pending when the work is done is
+    cleared, under a lock, before leaving, so none escapes to the caller.
+    """
+    if seconds is None:
+        yield
+        return
+    thread_id = ctypes.c_ulong(threading.get_ident())
+    lock = threading.Lock()
+    done = fired = False
+
+    def fire() -> None:
+        nonlocal fired
+        with lock:
+            if not done:
+                fired = True
+                _set_async_exc(thread_id, ctypes.py_object(_OutOfTime))
+
+    timer = threading.Timer(seconds, fire)
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        with lock:
+            done = True
+            if fired:  # raised already, or pending: clear it (NULL clears)
+                _set_async_exc(thread_id, None)
+        timer.cancel()
+
+
+# (thread id as c_ulong, exception class as py_object, or None: NULL, which clears)
+_set_async_exc = ctypes.pythonapi.PyThreadState_SetAsyncExc
 
 
 # -- sympy trees -----------------------------------------------------------------
@@ -421,6 +484,9 @@ class _Facts(NamedTuple):
     bad: str | None  # why the tree is not finite and real, if it is not
 
 
+_UNDERFLOW = "holds a number too small for double precision"
+
+
 def _atom_facts(atom: sympy.Basic) -> _Facts:
     if isinstance(atom, sympy.Symbol):
         return _Facts(1, 1, True, 0, None)
@@ -429,8 +495,14 @@ def _atom_facts(atom: sympy.Basic) -> _Facts:
     if atom is sympy.I:
         return _Facts(1, 1, False, 0, "is not real")
     bits = _rational_bits(atom) if atom.is_Rational else 0
-    if atom.is_Number and not math.isfinite(float(atom)):
-        return _Facts(1, 1, False, bits, "is not finite")
+    if atom.is_Number:
+        value = float(atom)
+        if not math.isfinite(value):
+            return _Facts(1, 1, False, bits, "is not finite")
+        # A Float beyond the double range, say 1e-300477121 from (1e-300*y)**1e6, is
+        # cheap for mpmath but makes sympy build enormous rationals (it hangs).
+        if atom.is_Float and value == 0 and not atom.is_zero:
+            return _Facts(1, 1, False, bits, _UNDERFLOW)
     return _Facts(1, 1, False, bits, None)
 
 
@@ -577,6 +649,22 @@ class _Parser:
             )
         return memo[expr]
 
+    def check_result(self, expr: sympy.Expr) -> None:
+        """The bounds on the whole expression, its names substituted."""
+        facts = self.facts(expr)
+        if facts.size > MAX_SIZE:
+            raise ExpressionError(
+                f"expression is too large once its names are substituted "
+                f"(more than {MAX_SIZE} nodes): {self.quote(None)}"
+            )
+        if facts.depth > MAX_TREE_DEPTH:
+            raise ExpressionError(
+                f"expression is nested too deeply once its names are substituted "
+                f"(more than {MAX_TREE_DEPTH} levels): {self.quote(None)}"
+            )
+        if facts.bad is not None:
+            raise ExpressionError(f"{self.quote(None)} {facts.bad}")
+
     # building, bottom-up; every constant is checked as soon as it is made
 
     def build(self, node: ast.expr) -> _Value:
@@ -619,16 +707,23 @@ class _Parser:
             raise ExpressionError(f"{self.quote(node)} is not finite")
 
     def finish(self, expr: sympy.Expr, value: float | None, node: ast.AST | None) -> _Value:
-        """Check a freshly built node: a constant must be finite and real, and stay small."""
-        if value is None:
-            if self.facts(expr).symbolic:
-                return _Value(expr, None)
+        """Check each freshly built node, so that nothing bad is built upon.
+
+        It must hold no infinity, nan, imaginary unit or number beyond the double
+        range; a constant must have a finite real value, and stay a small number.
+        """
+        facts = self.facts(expr)
+        if value is None and not facts.symbolic:
             # Symbols cancelled (x - x) or a derivative came out constant.
             try:
                 value = float(expr)
             except (TypeError, ValueError, ArithmeticError):
                 value = math.nan
             self.check_finite(value, node)
+        if facts.bad is _UNDERFLOW and value is not None:
+            expr = sympy.Float(value)  # a constant that underflows is its double value
+        elif facts.bad is not None:
+            raise ExpressionError(f"{self.quote(node)} {facts.bad}")
         if expr.is_Rational and _rational_bits(expr) > MAX_EXACT_BITS:
             expr = sympy.Float(value)
         return _Value(expr, value)

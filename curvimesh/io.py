@@ -17,6 +17,7 @@ stdout.
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import io
 import os
@@ -33,13 +34,14 @@ from numpy.typing import NDArray
 
 from .bezier import jacobian_bezier
 from .errors import InputError, MeshReadError
-from .mesh import Mesh, boundary_sides, signed_areas
+from .mesh import Mesh, boundary_sides, is_conforming, signed_areas
 
 __all__ = [
     "FORMATS",
     "atomic_output",
     "atomic_write_bytes",
     "atomic_write_text",
+    "check_writable",
     "read_mesh",
     "write_mesh",
 ]
@@ -129,6 +131,29 @@ def atomic_output(path: PathLike, suffix: str | None = None) -> Iterator[str]:
     finally:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+
+
+def check_writable(path: PathLike) -> None:
+    """Fail early, before any work, if ``path`` cannot be an output file.
+
+    Raises :class:`InputError` ``"<path>: cannot write: <reason>"`` when the
+    parent directory is missing or is not a directory, or ``path`` is a
+    directory. ``-`` (stdout) is always fine. A full disk or a read-only
+    directory is still only found when writing (:func:`atomic_output`).
+    """
+    if _is_dash(path):
+        return
+    target = Path(os.fspath(path))
+    parent = target.parent
+    if target.is_dir():
+        reason = errno.EISDIR
+    elif not parent.exists():
+        reason = errno.ENOENT
+    elif not parent.is_dir():
+        reason = errno.ENOTDIR
+    else:
+        return
+    raise InputError(f"{os.fspath(path)}: cannot write: {os.strerror(reason)}")
 
 
 def atomic_write_bytes(path: PathLike, data: bytes) -> None:
@@ -307,6 +332,8 @@ def _meshio_read(path: PathLike, file_format: str | None, name: str) -> meshio.M
         )
         if "deduce file format" in detail:
             what = f"unknown mesh format {Path(os.fspath(path)).suffix!r} (expected Gmsh .msh)"
+        elif "zero-size array" in detail:  # meshio's Gmsh readers on "$Nodes 0"
+            what = "empty mesh (no nodes)"
         else:
             kind = "Gmsh MSH" if file_format == "gmsh" else "mesh"
             what = f"invalid {kind} file" + (f" ({detail})" if detail else "")
@@ -375,11 +402,64 @@ def _from_meshio(raw: meshio.Mesh, name: str, box: tuple | None) -> Mesh:
         )
     clockwise = areas < 0
     tris[clockwise] = tris[clockwise][:, _FLIP[width]]
+    _check_folds(tris, len(xy), fail)
 
     if box is None and len(xy):
         (x0, y0), (x1, y1) = xy.min(axis=0), xy.max(axis=0)
         box = (float(x0), float(y0), float(x1), float(y1))
-    return Mesh(xy, tris, box)
+    else:
+        _check_inside(xy, box, fail)
+    mesh = Mesh(xy, tris, box)
+    if width == 6 and not is_conforming(mesh):
+        raise fail("neighbouring triangle6 cells do not share their edge nodes")
+    return mesh
+
+
+def _check_folds(tris: NDArray[np.int64], n: int, fail: Callable[[str], MeshReadError]) -> None:
+    """Reject meshes that fold over or are not conforming, once every triangle is CCW.
+
+    In a conforming counter-clockwise mesh an edge is held by at most two
+    triangles, which run along it in opposite directions. Two that run the
+    same way overlap: one of them was inverted in the file (a folded mesh).
+    """
+    corners = tris[:, :3]
+    a, b = corners.ravel(), corners[:, [1, 2, 0]].ravel()
+    directed = a * max(n, 1) + b
+    keys, counts = np.unique(directed, return_counts=True)
+    if np.any(counts > 1):
+        key = keys[np.argmax(counts > 1)]
+        t = np.flatnonzero(directed == key) // 3
+        raise fail(
+            f"triangles {t[0]} and {t[1]} overlap across their edge ({key // n}, {key % n}): "
+            "an inverted triangle, or not a conforming mesh (triangles count from 0)"
+        )
+    undirected = np.minimum(a, b) * max(n, 1) + np.maximum(a, b)
+    keys, counts = np.unique(undirected, return_counts=True)
+    if np.any(counts > 2):
+        i = np.argmax(counts > 2)
+        raise fail(
+            f"edge ({keys[i] // n}, {keys[i] % n}) is held by {counts[i]} triangles "
+            "(not a conforming mesh)"
+        )
+
+
+def _check_inside(
+    xy: NDArray[np.float64],
+    box: tuple[float, float, float, float],
+    fail: Callable[[str], MeshReadError],
+) -> None:
+    """Every node must lie in the box (the metric's domain), to 1e-9 of its size."""
+    x0, y0, x1, y1 = box
+    tol = 1e-9 * max(x1 - x0, y1 - y0)
+    x, y = xy[:, 0], xy[:, 1]
+    out = (x < x0 - tol) | (x > x1 + tol) | (y < y0 - tol) | (y > y1 + tol)
+    if np.any(out):
+        i = int(np.argmax(out))
+        raise fail(
+            f"node {i} at ({x[i]:.6g}, {y[i]:.6g}) is outside the domain box "
+            f"[{x0:g}, {x1:g}] x [{y0:g}, {y1:g}] of the metric "
+            f"({np.count_nonzero(out)} of {len(xy)} nodes outside; nodes count from 0)"
+        )
 
 
 def read_mesh(path: PathLike, *, box: tuple[float, float, float, float] | None = None) -> Mesh:

@@ -14,6 +14,10 @@ The metric forms (SPEC section 2):
 * ``isotropic: H``  →  g = I / H²
 * ``eigen: {sizes: [H1, H2], angle: A}``  →  g = R(A) diag(1/H1², 1/H2²) R(A)ᵀ
 * ``tensor: [G11, G12, G22]``
+* ``interpolation: {function: F, degree: K, norm: P, vertices: N, sizes: [HMIN, HMAX]}``
+  → the metric minimising the L^P error of degree-K interpolation of F for
+  about N vertices, sizes clamped to [HMIN, HMAX]; not symbolic: built and
+  differentiated numerically by :class:`curvimesh.interpolation.InterpolationMetric`.
 * ``intersection: [ITEM, ...]`` → the metric intersection of the items,
   folded left (simultaneous reduction; see :func:`intersect`).
 """
@@ -24,25 +28,35 @@ import difflib
 import math
 import os
 import re
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import sympy
 import yaml
+from sympy.printing.numpy import NumPyPrinter
 from numpy.typing import NDArray
 
 from curvimesh.errors import ExpressionError, MetricError
 from curvimesh.expressions import FUNCTIONS, parse_expression
+from curvimesh.interpolation import parse_interpolation
 
 X, Y = sympy.symbols("x y", real=True)
 
-#: Largest metric file accepted, in bytes (a metric file is a few hundred bytes).
-MAX_FILE_BYTES = 1_000_000
+#: Largest metric file accepted, in bytes. A metric file is a few hundred bytes;
+#: pure-Python YAML parsing takes about 50 µs per item, so this bounds the time
+#: a hostile file can cost to a few seconds.
+MAX_FILE_BYTES = 65_536
+#: Largest box coordinate, and inverse of the shortest box side, accepted.
+MAX_BOX = 1e100
+#: Most items in an ``intersection`` (each is compiled and evaluated on its own).
+MAX_ITEMS = 32
+#: Most expressions parsed for one file, outer definitions counted once per item.
+MAX_EXPRESSIONS = 1000
 
 TOP_KEYS = ("name", "description", "domain", "parameters", "definitions", "metric")
 ITEM_KEYS = ("parameters", "definitions")
-FORMS = ("isotropic", "eigen", "tensor", "intersection")
+FORMS = ("isotropic", "eigen", "tensor", "interpolation", "intersection")
 RESERVED = frozenset({"x", "y", "pi", *FUNCTIONS})
 _IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
@@ -69,19 +83,29 @@ def intersect(m1: NDArray, m2: NDArray) -> NDArray:
     >>> intersect(a, b)[0].real.tolist()
     [[4.0, 0.0], [0.0, 4.0]]
     """
-    a11, a12, a22 = m1[:, 0, 0], m1[:, 0, 1], m1[:, 1, 1]
-    b11, b12, b22 = m2[:, 0, 0], m2[:, 0, 1], m2[:, 1, 1]
+    a = (m1[:, 0, 0].copy(), m1[:, 0, 1].copy(), m1[:, 1, 1].copy())
+    b = (m2[:, 0, 0].copy(), m2[:, 0, 1].copy(), m2[:, 1, 1].copy())
+    c11, c12, c22 = intersect_components(a, b)
+    out = np.empty(m1.shape, dtype=c11.dtype)
+    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c11, c12, c12, c22
+    return out
+
+
+def intersect_components(a: tuple, b: tuple) -> tuple[NDArray, NDArray, NDArray]:
+    """:func:`intersect` on components: a = (a11, a12, a22), b likewise, 1D arrays."""
+    a11, a12, a22 = a
+    b11, b12, b22 = b
     # det(M2 - s M1) = qa s² + qb s + qc
     qa = a11 * a22 - a12 * a12
     qb = -(a11 * b22 + a22 * b11 - 2.0 * a12 * b12)
     qc = b11 * b22 - b12 * b12
     disc = qb * qb - 4.0 * qa * qc
-    scale = qb.real * qb.real
-    degenerate = disc.real <= 1e-24 * scale
+    degenerate = disc.real <= 1e-24 * (qb.real * qb.real)
     root = np.sqrt(np.where(degenerate, 1.0, disc))
-    out = np.zeros_like(m1)
+    inv2qa = 0.5 / qa
+    o11 = o12 = o22 = 0.0
     for sign in (-1.0, 1.0):
-        s = (-qb + sign * root) / (2.0 * qa)
+        s = (sign * root - qb) * inv2qa
         # null vector of A = M2 - s M1 (symmetric, singular)
         c11, c12, c22 = b11 - s * a11, b12 - s * a12, b22 - s * a22
         use_first = np.abs(c11.real) >= np.abs(c22.real)
@@ -90,16 +114,18 @@ def intersect(m1: NDArray, m2: NDArray) -> NDArray:
         w1 = a11 * v1 + a12 * v2  # M1 v
         w2 = a12 * v1 + a22 * v2
         lam = v1 * w1 + v2 * w2
-        lam = np.where(degenerate, 1.0, lam)
-        f = np.where(s.real > 1.0, s, 1.0) / lam
-        out[:, 0, 0] += f * w1 * w1
-        out[:, 0, 1] += f * w1 * w2
-        out[:, 1, 1] += f * w2 * w2
-    s0 = -qb / (2.0 * qa)
-    big = np.where(s0.real > 1.0, s0, 1.0)
-    out[degenerate] = big[degenerate, None, None] * m1[degenerate]
-    out[:, 1, 0] = out[:, 0, 1]
-    return out
+        f = np.where(s.real > 1.0, s, 1.0) / np.where(degenerate, 1.0, lam)
+        fw1 = f * w1
+        o11 = o11 + fw1 * w1
+        o12 = o12 + fw1 * w2
+        o22 = o22 + f * w2 * w2
+    if degenerate.any():
+        s0 = -qb * inv2qa
+        big = np.where(s0.real > 1.0, s0, 1.0)
+        o11 = np.where(degenerate, big * a11, o11)
+        o12 = np.where(degenerate, big * a12, o12)
+        o22 = np.where(degenerate, big * a22, o22)
+    return o11, o12, o22
 
 
 def intersect_with_derivatives(
@@ -116,12 +142,12 @@ def intersect_with_derivatives(
     what a geodesic integrator stepping across the kink needs.
     """
     h = 1e-30
-    g = intersect(g1, g2).real
     dg = np.empty_like(dg1)
     for k in range(2):
         z = intersect(g1 + 1j * h * dg1[..., k], g2 + 1j * h * dg2[..., k])
         dg[..., k] = z.imag / h
-    return g, dg
+    # the real part of a complex step is the value itself (h² ≪ rounding)
+    return z.real, dg
 
 
 def eigen_decomposition(g: NDArray) -> tuple[NDArray, NDArray]:
@@ -151,10 +177,27 @@ def _rewrite_minmax(expr: sympy.Expr) -> sympy.Expr:
     return expr.replace(sympy.Min, lambda *a: fold(a, -1)).replace(sympy.Max, lambda *a: fold(a, 1))
 
 
+class _FastPrinter(NumPyPrinter):
+    """numpy code with small integer powers written as products.
+
+    numpy's ``x**6`` on floats calls the general ``pow`` (tens of ns an
+    element); ``x*x*x*x*x*x`` costs a few. Exponents 2..8 (and their
+    reciprocals) are expanded.
+    """
+
+    def _print_Pow(self, expr, rational=False):
+        base, exp = expr.as_base_exp()
+        if exp.is_Integer and 2 <= abs(int(exp)) <= 8:
+            b = self.parenthesize(base, sympy.printing.precedence.PRECEDENCE["Mul"] + 1)
+            prod = "*".join([b] * abs(int(exp)))
+            return f"({prod})" if exp > 0 else f"(1/({prod}))"
+        return super()._print_Pow(expr, rational=rational)
+
+
 def _compile(exprs: Sequence[sympy.Expr]) -> Callable[[NDArray, NDArray], list[NDArray]]:
     """Lambdify expressions of (x, y) into one vectorised function (with cse)."""
     exprs = [_rewrite_minmax(sympy.sympify(e)) for e in exprs]
-    fn = sympy.lambdify((X, Y), exprs, modules="numpy", cse=True)
+    fn = sympy.lambdify((X, Y), exprs, modules="numpy", cse=True, printer=_FastPrinter)
 
     def evaluate(x: NDArray, y: NDArray) -> list[NDArray]:
         with np.errstate(all="ignore"):
@@ -209,6 +252,14 @@ class Component:
         if self._sizes_fn is None:
             return np.zeros((len(pts), 0))
         return np.stack(self._sizes_fn(pts[:, 0], pts[:, 1]), axis=1)
+
+
+def _unpack(g: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    return (
+        np.ascontiguousarray(g[..., 0, 0]),
+        np.ascontiguousarray(g[..., 0, 1]),
+        np.ascontiguousarray(g[..., 1, 1]),
+    )
 
 
 def _pack(g11: NDArray, g12: NDArray, g22: NDArray) -> NDArray:
@@ -287,14 +338,32 @@ class MetricField:
 
     def _raw_once(self, pts: NDArray, derivatives: bool) -> tuple[NDArray, NDArray | None]:
         g, dg = self.components[0].evaluate(pts, derivatives)
-        for comp in self.components[1:]:
-            g2, dg2 = comp.evaluate(pts, derivatives)
-            with np.errstate(all="ignore"):
-                if derivatives:
-                    g, dg = intersect_with_derivatives(g, dg, g2, dg2)
-                else:
-                    g = intersect(g, g2).real
-        return g, dg
+        if len(self.components) == 1:
+            return g, dg
+        # fold the intersection on contiguous component arrays (g11, g12, g22)
+        a = _unpack(g)
+        da = [_unpack(dg[..., k]) for k in range(2)] if derivatives else []
+        h = 1e-30  # complex step, see intersect_with_derivatives
+        with np.errstate(all="ignore"):
+            for comp in self.components[1:]:
+                g2, dg2 = comp.evaluate(pts, derivatives)
+                b = _unpack(g2)
+                if not derivatives:
+                    a = intersect_components(a, b)
+                    continue
+                db = [_unpack(dg2[..., k]) for k in range(2)]
+                new_da = []
+                for k in range(2):
+                    z = intersect_components(
+                        tuple(ai + 1j * h * di for ai, di in zip(a, da[k], strict=True)),
+                        tuple(bi + 1j * h * di for bi, di in zip(b, db[k], strict=True)),
+                    )
+                    new_da.append(tuple(zi.imag / h for zi in z))
+                a, da = tuple(zi.real for zi in z), new_da
+        g = _pack(*a)
+        if not derivatives:
+            return g, None
+        return g, np.stack([_pack(*da[0]), _pack(*da[1])], axis=-1)
 
     def _central_difference(self, pts: NDArray) -> NDArray:
         xmin, ymin, xmax, ymax = self.box
@@ -388,7 +457,11 @@ UNIT_TRIANGLE_AREA = math.sqrt(3.0) / 4.0
 
 
 class _NoAliasLoader(yaml.SafeLoader):
-    """A safe loader that refuses YAML aliases (no 'billion laughs')."""
+    """A safe loader that refuses YAML aliases (no 'billion laughs') and duplicate keys.
+
+    Floats are read as in YAML 1.2 (``1e-3`` is a number, not a string), and an
+    integer too long for Python to convert is a YAML error, not a ValueError.
+    """
 
     def compose_node(self, parent, index):  # type: ignore[override]
         if self.check_event(yaml.AliasEvent):
@@ -404,10 +477,48 @@ class _NoAliasLoader(yaml.SafeLoader):
             key = self.construct_object(key_node, deep=deep)
             if isinstance(key, str) and key in seen:
                 raise yaml.constructor.ConstructorError(
-                    None, None, f"duplicate key '{key}'", key_node.start_mark
+                    None, None, f"duplicate key {_short(key)}", key_node.start_mark
                 )
-            seen.add(key)
+            if isinstance(key, Hashable):  # an unhashable key is reported by SafeLoader
+                seen.add(key)
         return super().construct_mapping(node, deep=deep)
+
+    def construct_yaml_int(self, node):  # type: ignore[override]
+        try:
+            return super().construct_yaml_int(node)
+        except ValueError:  # more digits than int() converts (sys.get_int_max_str_digits)
+            raise yaml.constructor.ConstructorError(
+                None, None, "integer too long", node.start_mark
+            ) from None
+
+
+_NoAliasLoader.add_constructor("tag:yaml.org,2002:int", _NoAliasLoader.construct_yaml_int)
+# YAML 1.2 floats without a dot (1e-3, 2E+5); YAML 1.1, and so SafeLoader, reads them as strings.
+_NoAliasLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+
+def _short(value: object, limit: int = 60) -> str:
+    """``repr(value)`` on one line of at most ``limit`` characters, for messages."""
+    try:
+        text = repr(value)
+    except ValueError:  # an int of more digits than repr converts
+        return f"<an integer of {value.bit_length()} bits>"  # type: ignore[union-attr]
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _as_float(value: object) -> float | None:
+    """The value as a finite float, or None (bools, strings, inf, nan, huge ints)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    try:
+        out = float(value)
+    except OverflowError:
+        return None
+    return out if math.isfinite(out) else None
 
 
 def _suggest(word: str, choices: Sequence[str]) -> str:
@@ -418,17 +529,19 @@ def _suggest(word: str, choices: Sequence[str]) -> str:
 class _Loader:
     """Turns a parsed YAML document into a :class:`MetricField`, naming keys in errors."""
 
-    def __init__(self, source: str) -> None:
-        self.source = source
-
     def fail(self, key: str, msg: str) -> MetricError:
         return MetricError(f"{self.source}: {key}: {msg}")
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+        self.expressions = 0
+        self.domain = (0.0, 0.0, 1.0, 1.0)  # the box, for forms that integrate over it
 
     def check_keys(self, mapping: Mapping, allowed: Sequence[str], key: str) -> None:
         for k in mapping:
             if not isinstance(k, str) or k not in allowed:
                 raise self.fail(
-                    f"{key}.{k}" if key else str(k),
+                    _join(key, k),
                     f"unknown key{_suggest(str(k), allowed)}; allowed: {', '.join(allowed)}",
                 )
 
@@ -440,6 +553,7 @@ class _Loader:
         if not isinstance(name, str | int | float):
             raise self.fail("name", "must be a string")
         box = self.box(doc.get("domain"))
+        self.domain = box
         params = self.parameters(doc.get("parameters"), "parameters", {})
         defs = self.definitions_raw(doc.get("definitions"), "definitions")
         if "metric" not in doc:
@@ -461,18 +575,26 @@ class _Loader:
             and all(_is_number(v) for p in b for v in p)
         )
         if not ok:
-            raise self.fail("domain.box", f"must be [[xmin, ymin], [xmax, ymax]], got {b!r}")
-        (x0, y0), (x1, y1) = b
-        vals = [float(v) for v in (x0, y0, x1, y1)]
-        if not all(math.isfinite(v) for v in vals):
-            raise self.fail("domain.box", "coordinates must be finite")
-        if not (vals[0] < vals[2] and vals[1] < vals[3]):
-            raise self.fail("domain.box", f"min must be below max, got {b!r}")
-        return (vals[0], vals[1], vals[2], vals[3])
+            raise self.fail("domain.box", f"must be [[xmin, ymin], [xmax, ymax]], got {_short(b)}")
+        vals = [_as_float(v) for p in b for v in p]
+        if any(v is None for v in vals):
+            raise self.fail("domain.box", f"coordinates must be finite numbers, got {_short(b)}")
+        x0, y0, x1, y1 = (float(v) for v in vals)  # type: ignore[arg-type]
+        if not (x0 < x1 and y0 < y1):
+            raise self.fail("domain.box", f"min must be below max in x and in y, got {_short(b)}")
+        # Areas and relative tolerances (1e-9 of the box) must stay meaningful.
+        reach = max(abs(x0), abs(y0), abs(x1), abs(y1))
+        if reach > MAX_BOX or min(x1 - x0, y1 - y0) < max(1.0 / MAX_BOX, 1e-6 * reach):
+            raise self.fail(
+                "domain.box",
+                f"coordinates must lie within ±{MAX_BOX:g} and each side be longer than "
+                f"{1.0 / MAX_BOX:g} and than 1e-6 of the largest coordinate, got {_short(b)}",
+            )
+        return (x0, y0, x1, y1)
 
     def name_ok(self, name: object, key: str) -> str:
         if not isinstance(name, str) or not _IDENT.match(name):
-            raise self.fail(key, f"{name!r} is not a valid name")
+            raise self.fail(key, f"{_short(name)} is not a valid name")
         if name in RESERVED:
             raise self.fail(key, f"'{name}' is reserved (x, y, pi and function names)")
         return name
@@ -484,9 +606,9 @@ class _Loader:
         if not isinstance(raw, dict):
             raise self.fail(key, "must be a mapping of names to numbers")
         for k, v in raw.items():
-            k = self.name_ok(k, f"{key}.{k}")
-            if not _is_number(v) or not math.isfinite(float(v)):
-                raise self.fail(f"{key}.{k}", f"must be a finite number, got {v!r}")
+            k = self.name_ok(k, _join(key, k))
+            if _as_float(v) is None:
+                raise self.fail(f"{key}.{k}", f"must be a finite number, got {_short(v)}")
             out[k] = sympy.Integer(v) if isinstance(v, int) else sympy.Float(v)
         return out
 
@@ -495,7 +617,7 @@ class _Loader:
             return []
         if not isinstance(raw, dict):
             raise self.fail(key, "must be a mapping of names to expressions")
-        return [(self.name_ok(k, f"{key}.{k}"), v, f"{key}.{k}") for k, v in raw.items()]
+        return [(self.name_ok(k, _join(key, k)), v, f"{key}.{k}") for k, v in raw.items()]
 
     def scope(self, params: Mapping, defs: list[tuple[str, object, str]]) -> dict:
         names: dict[str, sympy.Expr] = {"x": X, "y": Y, **params}
@@ -505,18 +627,35 @@ class _Loader:
 
     def expr(self, text: object, names: Mapping[str, sympy.Expr], key: str) -> sympy.Expr:
         if isinstance(text, bool) or not isinstance(text, str | int | float):
-            raise self.fail(key, f"must be an expression or a number, got {text!r}")
+            raise self.fail(key, f"must be an expression or a number, got {_short(text)}")
+        if isinstance(text, int) and _as_float(text) is None:
+            raise self.fail(key, f"{_short(text)} is not finite")
+        self.expressions += 1
+        if self.expressions > MAX_EXPRESSIONS:
+            raise self.fail(key, f"too many expressions (more than {MAX_EXPRESSIONS} to parse)")
         try:
             return parse_expression(text, names)
         except ExpressionError as exc:
             raise self.fail(key, str(exc)) from None
+
+    def size(self, text: object, names: Mapping[str, sympy.Expr], key: str) -> sympy.Expr:
+        """A size H: an expression that, if constant, must be finite and positive.
+
+        (A zero constant would make 1/H² sympy's complex infinity; sizes that
+        vary are checked where the metric is evaluated.)
+        """
+        h = self.expr(text, names, key)
+        if h.is_number and not (h.is_finite and h.is_extended_real and h > 0):
+            raise self.fail(key, f"size must be positive, got {_short(text)} = {h}")
+        return h
 
     def form(self, raw: object, key: str, params: dict, defs: list) -> list[Component]:
         if not isinstance(raw, dict) or len(raw) == 0:
             raise self.fail(key, "must hold exactly one of: " + ", ".join(FORMS))
         for k in raw:
             if k not in FORMS and k not in ITEM_KEYS:
-                raise self.fail(f"{key}.{k}", f"unknown metric form{_suggest(str(k), FORMS)}")
+                allowed = FORMS if key == "metric" else (*FORMS, *ITEM_KEYS)
+                raise self.fail(_join(key, k), f"unknown metric form{_suggest(str(k), allowed)}")
         forms = [k for k in raw if k in FORMS]
         if len(forms) != 1:
             found = ", ".join(forms) if forms else "none"
@@ -530,6 +669,8 @@ class _Loader:
         if form == "intersection":
             if not isinstance(body, list) or len(body) == 0:
                 raise self.fail(fkey, "must be a non-empty list of metric items")
+            if len(body) > MAX_ITEMS:
+                raise self.fail(fkey, f"too many items ({len(body)}; at most {MAX_ITEMS})")
             comps: list[Component] = []
             for i, item in enumerate(body):
                 ikey = f"{fkey}[{i}]"
@@ -541,7 +682,7 @@ class _Loader:
             return comps
         names = self.scope(params, defs)
         if form == "isotropic":
-            h = self.expr(body, names, fkey)
+            h = self.size(body, names, fkey)
             return [Component((1 / h**2, sympy.Integer(0), 1 / h**2), (h,), fkey)]
         if form == "eigen":
             if not isinstance(body, dict):
@@ -549,11 +690,11 @@ class _Loader:
             self.check_keys(body, ("sizes", "angle"), fkey)
             sizes = body.get("sizes")
             if not isinstance(sizes, list) or len(sizes) != 2:
-                raise self.fail(f"{fkey}.sizes", f"must be a list [H1, H2], got {sizes!r}")
+                raise self.fail(f"{fkey}.sizes", f"must be a list [H1, H2], got {_short(sizes)}")
             if "angle" not in body:
                 raise self.fail(f"{fkey}.angle", "missing")
-            h1 = self.expr(sizes[0], names, f"{fkey}.sizes[0]")
-            h2 = self.expr(sizes[1], names, f"{fkey}.sizes[1]")
+            h1 = self.size(sizes[0], names, f"{fkey}.sizes[0]")
+            h2 = self.size(sizes[1], names, f"{fkey}.sizes[1]")
             a = self.expr(body["angle"], names, f"{fkey}.angle")
             c, s = sympy.cos(a), sympy.sin(a)
             l1, l2 = 1 / h1**2, 1 / h2**2
@@ -561,9 +702,11 @@ class _Loader:
             g12 = (l1 - l2) * c * s
             g22 = l1 * s**2 + l2 * c**2
             return [Component((g11, g12, g22), (h1, h2), fkey)]
+        if form == "interpolation":
+            return [parse_interpolation(body, names, key=fkey, box=self.domain, source=self.source)]
         # tensor
         if not isinstance(body, list) or len(body) != 3:
-            raise self.fail(fkey, f"must be a list [G11, G12, G22], got {body!r}")
+            raise self.fail(fkey, f"must be a list [G11, G12, G22], got {_short(body)}")
         g = tuple(self.expr(v, names, f"{fkey}[{i}]") for i, v in enumerate(body))
         return [Component(g, (), fkey)]  # type: ignore[arg-type]
 
@@ -572,10 +715,35 @@ def _is_number(v: object) -> bool:
     return isinstance(v, int | float) and not isinstance(v, bool)
 
 
+def _join(key: str, sub: object) -> str:
+    """``key.sub`` for messages; a key that is not a plain name is shown by its short repr."""
+    part = sub if isinstance(sub, str) and _IDENT.match(sub) else _short(sub)
+    return f"{key}.{part}" if key else str(part)
+
+
+def _check_items(field_: MetricField, pts: NDArray) -> None:
+    """Each item of an intersection must be SPD on its own: the intersection of an
+    SPD metric with an indefinite one can come out SPD and hide the error."""
+    if len(field_.components) < 2:
+        return
+    for comp in field_.components:
+        alone = MetricField((comp,), box=field_.box, source=field_.source)
+        g, _ = alone._raw(pts, False)  # with the limit at isolated 0/0 points
+        bad = ~_spd(g)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise MetricError(
+                f"{field_.source}: {comp.key}: metric is not finite and positive definite at "
+                f"({pts[i, 0]:.6g}, {pts[i, 1]:.6g}): g = {_fmt(g[i])}"
+            )
+
+
 def load_metric_text(text: str, *, source: str = "<metric>") -> MetricField:
     """Parse a metric from YAML text. Raises :class:`MetricError` with a one-line message."""
     if len(text) > MAX_FILE_BYTES:
-        raise MetricError(f"{source}: file too large ({len(text)} bytes; limit {MAX_FILE_BYTES})")
+        raise MetricError(
+            f"{source}: file too large ({len(text):,} characters; limit {MAX_FILE_BYTES:,})"
+        )
     try:
         doc = yaml.load(text, Loader=_NoAliasLoader)
     except yaml.YAMLError as exc:
@@ -586,7 +754,9 @@ def load_metric_text(text: str, *, source: str = "<metric>") -> MetricField:
     except RecursionError:
         raise MetricError(f"{source}: invalid YAML: nested too deeply") from None
     field_ = _Loader(source).load(doc)
-    field_.validate(field_.sample_points(33))
+    pts = field_.sample_points(33)
+    field_.validate(pts)
+    _check_items(field_, pts)
     return field_
 
 
@@ -598,6 +768,8 @@ def load_metric(path: str | os.PathLike) -> MetricField:
             data = f.read(MAX_FILE_BYTES + 1)
     except OSError as exc:
         raise MetricError(f"{source}: cannot read: {exc.strerror or exc}") from None
+    if len(data) > MAX_FILE_BYTES:  # in bytes, before decoding: no truncated text gets through
+        raise MetricError(f"{source}: file too large (more than {MAX_FILE_BYTES:,} bytes)")
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError:

@@ -84,13 +84,14 @@ def pairs_within_boxes(pts: NDArray, radius: NDArray) -> tuple[NDArray, NDArray]
     """Pairs (i, j), i < j, where one point lies in the other's box of half-width ``radius``.
 
     Builds one bulk-loaded R-tree over ``pts`` ``(n, 2)`` and queries the
-    boxes [p − r, p + r] of every point; ``radius`` is ``(n,)``.
+    boxes [p − r, p + r] of every point; ``radius`` is ``(n,)`` or ``(n, 2)``.
     """
     n = len(pts)
     if n < 2:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     tree = _bulk(np.arange(n), pts)
-    r = np.asarray(radius, dtype=float)[:, None]
+    r = np.asarray(radius, dtype=float)
+    r = r[:, None] if r.ndim == 1 else r
     ids, counts = tree.intersection_v(np.ascontiguousarray(pts - r), np.ascontiguousarray(pts + r))
     a = np.repeat(np.arange(n), counts.astype(np.int64))
     b = np.asarray(ids, dtype=np.int64)
