@@ -21,6 +21,7 @@ from curvimesh.fill import fill_gaps
 from curvimesh.mesh import Mesh
 from curvimesh.metric import UNIT_TRIANGLE_AREA, MetricField, density_integral
 from curvimesh.sampling import SamplingOptions, sample_points
+from curvimesh.smooth import relocate
 from curvimesh.triangulate import delaunay, metric_delaunay
 
 #: Default bound on the vertex count (SPEC: ``--max-vertices``).
@@ -43,6 +44,7 @@ class AdaptOptions:
     max_swap_rounds: int = 200
     fill: bool = True
     straight: bool = False
+    relocate: bool = True
 
 
 def estimated_vertices(metric_area: float) -> float:
@@ -72,14 +74,24 @@ def sample(fld: MetricField, options: AdaptOptions | None = None) -> Mesh:
     return Mesh(pts, np.zeros((0, 3), dtype=np.int64), fld.box)
 
 
-def triangulate(points: Mesh, fld: MetricField | None = None) -> Mesh:
+def triangulate(
+    points: Mesh, fld: MetricField | None = None, options: AdaptOptions | None = None
+) -> Mesh:
     """Stage 2: Delaunay triangulation of the nodes of a point cloud (or of any mesh).
 
     With a metric, the Euclidean Delaunay triangulation is then flipped to
-    the Delaunay triangulation in the metric (:func:`metric_delaunay`).
+    the Delaunay triangulation in the metric (:func:`metric_delaunay`) and,
+    unless ``options.relocate`` is off, its vertices are relocated
+    (:func:`curvimesh.smooth.relocate`).
     """
     mesh = delaunay(np.asarray(points.points), box=points.box)
-    return metric_delaunay(fld, mesh) if fld is not None else mesh
+    if fld is None:
+        return mesh
+    mesh = metric_delaunay(fld, mesh)
+    opt = options or AdaptOptions()
+    if opt.relocate:
+        mesh = relocate(fld, mesh, min_dist=opt.sampling.min_dist)
+    return mesh
 
 
 def curve(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> Mesh:
@@ -117,7 +129,7 @@ def adapt(
     seconds["sample"] = time.perf_counter() - t
     progress(f"sample: {len(cloud.points)} points ({seconds['sample']:.1f} s)")
     t = time.perf_counter()
-    p1 = triangulate(cloud, fld)
+    p1 = triangulate(cloud, fld, opt)
     seconds["triangulate"] = time.perf_counter() - t
     progress(f"triangulate: {len(p1.triangles)} triangles ({seconds['triangulate']:.1f} s)")
     t = time.perf_counter()

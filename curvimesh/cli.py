@@ -25,6 +25,7 @@ import numpy as np
 from curvimesh import adapt as pipeline
 from curvimesh.errors import CurvimeshError, InputError, WorkError
 from curvimesh.geodesic import parabola_length, shoot, shortest_parabola
+from curvimesh.interpolation import compile_function
 from curvimesh.io import FORMATS, atomic_output, check_writable, read_mesh, write_mesh
 from curvimesh.metric import (
     UNIT_TRIANGLE_AREA,
@@ -350,12 +351,20 @@ def adapt(ctx: Context, metric_path, output, fmt, seed, stats_path, max_vertices
     default=None,
     help="Draw the mesh and histograms into this image.",
 )
+@click.option(
+    "--function",
+    "function_text",
+    metavar="EXPR",
+    default=None,
+    help="Also report the L2 and Linf errors of the Lagrange interpolant of EXPR(x, y).",
+)
 @command
-def report(ctx: Context, mesh_path, metric_path, as_json, plot_path) -> None:
+def report(ctx: Context, mesh_path, metric_path, as_json, plot_path, function_text) -> None:
     """Edge lengths, qualities and validity of a mesh in a metric."""
+    function = compile_function(function_text, source="--function") if function_text else None
     fld = load_metric(metric_path)
     mesh = _require_triangles(_read(mesh_path, fld), mesh_path)
-    rep = mesh_report(fld, mesh)
+    rep = mesh_report(fld, mesh, function=function)
     if plot_path:
         from curvimesh.plot import plot_mesh_report
 

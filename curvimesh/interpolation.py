@@ -190,8 +190,9 @@ def cubic_shape(
     >>> np.exp(-X / 2).round(6).tolist(), np.exp((X - Y) / 2).round(6).tolist()
     ([0.5, 1.0], [100.0, 1.0])
     """
-    cos, sin = _frame(a * a + 2.0 * b * b + c * c, a * b + 2.0 * b * c + c * d,
-                      b * b + 2.0 * c * c + d * d)
+    cos, sin = _frame(
+        a * a + 2.0 * b * b + c * c, a * b + 2.0 * b * c + c * d, b * b + 2.0 * c * c + d * d
+    )
     # Coefficients of π(s e1 + t e2) = A s³ + 3B s²t + 3C st² + D t³.
     cc, cs, ss = cos * cos, cos * sin, sin * sin
     big_a = cos * (a * cc + 3.0 * b * cs + 3.0 * c * ss) + d * sin * ss
@@ -288,9 +289,7 @@ def _smooth_form(expr: sympy.Expr) -> sympy.Expr:
             acc = (acc + other + sign * sympy.Abs(acc - other)) / 2
         return acc
 
-    return expr.replace(sympy.Min, lambda *a: fold(a, -1)).replace(
-        sympy.Max, lambda *a: fold(a, 1)
-    )
+    return expr.replace(sympy.Min, lambda *a: fold(a, -1)).replace(sympy.Max, lambda *a: fold(a, 1))
 
 
 def _derivatives(expr: sympy.Expr, order: int) -> list[sympy.Expr]:

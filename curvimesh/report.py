@@ -3,16 +3,20 @@
 :func:`mesh_report` returns the JSON object of SPEC section 4: counts, edge
 lengths of the curved edges (to 1e-5 relative), quality of equation (4),
 validity decided exactly, the straight-sided version's invalid count (paper
-figure 8), metric area, ideal triangle count and efficiency.
+figure 8), metric area, ideal triangle count and efficiency; with a function,
+the errors of its Lagrange interpolant on the mesh.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
+from numpy.typing import NDArray
 
 from curvimesh.bezier import valid_exact
+from curvimesh.interpolation_error import interpolation_error
 from curvimesh.mesh import Mesh, signed_areas
 from curvimesh.metric import UNIT_TRIANGLE_AREA, MetricField, density_integral
 from curvimesh.quality import edge_lengths, metric_areas, quality_from
@@ -21,8 +25,20 @@ from curvimesh.quality import edge_lengths, metric_areas, quality_from
 UNIT_RANGE = (0.7, 1.4)
 
 
-def mesh_report(field: MetricField, mesh: Mesh, *, metric_area: float | None = None) -> dict:
-    """The SPEC section 4 report of ``mesh`` (P1 or P2) in ``field``."""
+def mesh_report(
+    field: MetricField,
+    mesh: Mesh,
+    *,
+    metric_area: float | None = None,
+    function: Callable[[NDArray], NDArray] | None = None,
+) -> dict:
+    """The SPEC section 4 report of ``mesh`` (P1 or P2) in ``field``.
+
+    With ``function`` (points ``(n, 2)`` to values ``(n,)``, e.g. from
+    :func:`curvimesh.interpolation.compile_function`), also
+    ``"interpolation_error": {"l2", "linf"}`` of its Lagrange interpolant on
+    the mesh as it is (:func:`curvimesh.interpolation_error.interpolation_error`).
+    """
     if len(mesh.triangles) == 0:
         raise ValueError("the mesh has no triangles")
     pts = np.asarray(mesh.points)
@@ -44,7 +60,7 @@ def mesh_report(field: MetricField, mesh: Mesh, *, metric_area: float | None = N
         metric_area = density_integral(field)
     ideal = metric_area / UNIT_TRIANGLE_AREA
     lo, hi = UNIT_RANGE
-    return {
+    out = {
         "vertices": len(mesh.vertex_ids),
         "nodes": len(np.unique(mesh.triangles)),
         "triangles": len(mesh.triangles),
@@ -69,6 +85,9 @@ def mesh_report(field: MetricField, mesh: Mesh, *, metric_area: float | None = N
         "ideal_triangles": float(ideal),
         "efficiency": float(len(mesh.triangles) / ideal) if ideal > 0 else math.inf,
     }
+    if function is not None:
+        out["interpolation_error"] = interpolation_error(function, mesh).as_dict()
+    return out
 
 
 def format_report(report: dict) -> str:
@@ -90,6 +109,9 @@ def format_report(report: dict) -> str:
         ("ideal triangles", f"{report['ideal_triangles']:.1f}"),
         ("efficiency (triangles / ideal)", f"{report['efficiency']:.4f}"),
     ]
+    if "interpolation_error" in report:
+        err = report["interpolation_error"]
+        rows.append(("interpolation error L2 / Linf", f"{err['l2']:.4e} / {err['linf']:.4e}"))
     for key in ("swaps",):
         if key in report:
             rows.append((key, f"{report[key]}"))

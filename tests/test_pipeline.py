@@ -164,8 +164,8 @@ def test_any_smooth_metric_gives_a_valid_conforming_mesh(h1, ratio, angle, wave,
 domain: {{box: [[0, 0], [2, 1.5]]}}
 metric:
   eigen:
-    sizes: [{h1 / ratio} * (1 + {wave} * sin({freq} * x)), {h1}]
-    angle: {angle} + {wave} * cos({freq} * y)
+    sizes: [{h1 / ratio:.6g} * (1 + {wave:.6g} * sin({freq:.6g} * x)), {h1:.6g}]
+    angle: {angle:.6g} + {wave:.6g} * cos({freq:.6g} * y)
 """
     fld = load_metric_text(text)
     mesh = pipeline.adapt(fld).mesh

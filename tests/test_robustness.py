@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import errno
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -566,6 +567,8 @@ def test_interrupt_leaves_nothing(tmp_path, sig, code):
     try:
         for proc in procs:
             # -v prints a line once the metric is loaded and sampling starts
+            ready, _, _ = select.select([proc.stderr], [], [], 60.0)
+            assert ready, "no progress line within 60 s"
             assert "metric area" in proc.stderr.readline()
         time.sleep(0.3)
         for proc in procs:
@@ -579,7 +582,10 @@ def test_interrupt_leaves_nothing(tmp_path, sig, code):
         assert proc.returncode == code, err
         assert out == ""
         assert "Traceback" not in err
-        assert err.strip().splitlines()[-1] in ("curvimesh: error: interrupted", "curvimesh: error: terminated")
+        assert err.strip().splitlines()[-1] in (
+            "curvimesh: error: interrupted",
+            "curvimesh: error: terminated",
+        )
     assert files(outdir) == {"old.msh": OLD}
 
 
@@ -699,44 +705,56 @@ def test_failed_stats_write_keeps_the_old_mesh(tmp_path, monkeypatch):
 
 # ---------------------------------------------------------------- random documents
 
-NAMES = ["x", "y", "pi", "h", "eps", "r", "theta", "lmin", "a1", "_b"]
-FUNCS = ["sqrt", "exp", "log", "sin", "cos", "tan", "atan2", "abs", "min", "max", "diff", "foo"]
-KEYS = [*TOP_KEYS, *FORMS, "box", "sizes", "angle", "h", "eps", "r", "theta", "lmin"]
+NAMES = ["h", "eps", "r", "theta", "lmin", "a1", "_b"]
+VALID_FUNCS = ["sqrt", "exp", "log", "sin", "cos", "tan", "atan", "atan2", "abs", "min", "max"]
+KEYS = [*TOP_KEYS, *FORMS, "box", "sizes", "angle", *NAMES]
 
 numbers = st.one_of(
+    st.floats(0.01, 2.0),
     st.integers(-(10**6), 10**6),
     st.floats(allow_nan=True, allow_infinity=True),
     st.sampled_from([0, 0.1, 0.5, 1, -1, 1e-300, 1e300, 2**70]),
 )
+# Mostly the grammar of SPEC section 2, some of it junk.
+atoms = st.one_of(
+    st.sampled_from(["x", "y", "pi", "h", "eps", "0.5", "2", "1e-3", "0.1"]),
+    st.sampled_from(["x", "y", "pi", "h", "eps", "0.5", "2", "1e-3", "0.1"]),
+    st.sampled_from(["z", "__import__", "'s'", "[1]", "lambda: 1", "1j", "inf", "x.real", ""]),
+    st.text(max_size=5),
+)
 
 
-def _binary(children):
-    ops = st.sampled_from(["+", "-", "*", "/", "**", "//", "%", "^", " and ", "<", "."])
-    return st.tuples(children, ops, children).map(lambda t: f"({t[0]}{t[1]}{t[2]})")
-
-
-def _call(children):
-    args = st.lists(children, min_size=0, max_size=3)
-    return st.tuples(st.sampled_from(FUNCS), args).map(lambda t: f"{t[0]}({', '.join(t[1])})")
-
-
-expressions = st.recursive(
-    st.one_of(
-        st.sampled_from(NAMES),
-        numbers.map(repr),
-        st.text(max_size=6),  # junk: quotes, brackets, unicode...
-    ),
-    lambda children: st.one_of(
-        _binary(children),
-        _call(children),
+def _grow(children):
+    good_ops = st.sampled_from(["+", "-", "*", "/", "**", "+", "*"])
+    bad_ops = st.sampled_from(["//", "%", "^", " and ", "<", ".", " if x else "])
+    return st.one_of(
+        st.tuples(children, good_ops, children).map(lambda t: f"({t[0]} {t[1]} {t[2]})"),
+        st.tuples(children, good_ops, children).map(lambda t: f"{t[0]}{t[1]}{t[2]}"),
+        st.tuples(children, bad_ops, children).map(lambda t: f"({t[0]}{t[1]}{t[2]})"),
+        st.tuples(st.sampled_from(VALID_FUNCS), st.lists(children, min_size=1, max_size=2)).map(
+            lambda t: f"{t[0]}({', '.join(t[1])})"
+        ),
+        st.tuples(children, st.sampled_from(["x", "y", "z"])).map(
+            lambda t: f"diff({t[0]}, {t[1]})"
+        ),
+        st.tuples(st.sampled_from(["foo", "eval", "getattr", "Symbol"]), children).map(
+            lambda t: f"{t[0]}({t[1]})"
+        ),
         children.map(lambda e: f"-{e}"),
         children.map(lambda e: f"{e}[0]"),
-        children.map(lambda e: f"{e}.__class__"),
-        children.map(lambda e: f"(lambda: {e})()"),
-    ),
-    max_leaves=8,
+        children.map(lambda e: f"({e}).__class__"),
+    )
+
+
+expressions = st.recursive(atoms, _grow, max_leaves=8)
+good_sizes = st.one_of(
+    st.sampled_from(["h", "0.1 + 0.05*sin(x*y)", "h*(1 + x**2)", "0.2*exp(-x)", "min(h, 0.3)"]),
+    st.sampled_from(["abs(x) + 0.1", "sqrt(x**2 + y**2 + 0.01)", "0.3 - 0.1*tanh(diff(x**2, x))"]),
+    expressions.map(lambda e: f"0.2 + 0.1*tanh({e})"),
 )
-scalars = st.one_of(st.none(), st.booleans(), numbers, expressions, st.text(max_size=8))
+scalars = st.one_of(
+    st.none(), st.booleans(), numbers, expressions, expressions, st.text(max_size=8)
+)
 keys = st.one_of(st.sampled_from(KEYS), st.text(max_size=8), st.integers(-3, 3))
 documents = st.recursive(
     scalars,
@@ -748,7 +766,18 @@ documents = st.recursive(
 )
 # Documents shaped like metric files, so that validation gets deep.
 forms = st.one_of(
-    st.fixed_dictionaries({"isotropic": scalars}),
+    st.fixed_dictionaries({"isotropic": st.one_of(good_sizes, expressions)}),
+    st.fixed_dictionaries(
+        {
+            "eigen": st.fixed_dictionaries(
+                {
+                    "sizes": st.lists(st.one_of(good_sizes, expressions), min_size=2, max_size=2),
+                    "angle": expressions,
+                }
+            )
+        }
+    ),
+    st.fixed_dictionaries({"tensor": st.lists(expressions, min_size=3, max_size=3)}),
     st.fixed_dictionaries(
         {"eigen": st.fixed_dictionaries({"sizes": st.lists(scalars, max_size=3), "angle": scalars})}
     ),
@@ -756,24 +785,27 @@ forms = st.one_of(
     st.dictionaries(st.sampled_from(KEYS), documents, max_size=3),
 )
 items = st.lists(
-    st.tuples(
-        forms,
-        st.dictionaries(st.sampled_from(NAMES), numbers, max_size=2),
-    ).map(lambda t: {**t[0], "parameters": t[1]} if t[1] else t[0]),
+    st.tuples(forms, st.dictionaries(st.sampled_from(NAMES), numbers, max_size=2)).map(
+        lambda t: {**t[0], "parameters": t[1]} if t[1] else t[0]
+    ),
     min_size=1,
     max_size=3,
 )
 metric_docs = st.fixed_dictionaries(
-    {"metric": st.one_of(forms, items.map(lambda i: {"intersection": i}))},
+    {
+        "metric": st.one_of(forms, forms, items.map(lambda i: {"intersection": i})),
+        "parameters": st.fixed_dictionaries({"h": st.floats(0.05, 1.0), "eps": numbers}),
+    },
     optional={
         "domain": st.one_of(
             st.just({"box": [[-1, -1], [1, 1]]}),
             st.fixed_dictionaries({"box": st.lists(st.lists(numbers, max_size=3), max_size=3)}),
             documents,
         ),
-        "parameters": st.dictionaries(st.sampled_from(NAMES[2:]), scalars, max_size=3),
-        "definitions": st.dictionaries(st.sampled_from(NAMES), expressions, max_size=3),
-        "junk": documents,
+        "definitions": st.dictionaries(
+            st.sampled_from([*NAMES[2:], "x", "sin"]), expressions, max_size=3
+        ),
+        "name": scalars,
     },
 )
 
@@ -783,6 +815,8 @@ def _dump(doc) -> str:
 
 
 texts = st.one_of(
+    metric_docs.map(_dump),
+    metric_docs.map(_dump),
     metric_docs.map(_dump),
     documents.map(_dump),
     st.text(max_size=200),

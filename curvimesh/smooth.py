@@ -1,0 +1,104 @@
+"""Vertex relocation: moving vertices to even out their edge lengths in the metric.
+
+The paper places its points once and only swaps edges; its conclusion
+leaves "other mesh optimizations" to further work. This stage moves every
+interior vertex of the straight mesh towards the place where its edges would
+be unit: for an edge i–j of metric length L (its shortest parabola, paper
+eq. (3)) the point p_j + (p_i − p_j) / L would make it unit if the metric were
+constant along it, and the vertex goes, by a relaxation factor, towards the
+average of these points over its edges (the "spring" relocation of
+Bossen & Heckbert 1996, in the metric). All vertices move at once (a Jacobi
+sweep); a move is undone when it would invert a triangle or bring an edge
+below ``min_dist``. Between sweeps the edges are flipped back to the
+Delaunay triangulation in the metric. Boundary vertices stay.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from curvimesh.geodesic import shortest_parabola
+from curvimesh.mesh import Mesh, signed_areas
+from curvimesh.metric import MetricField
+from curvimesh.triangulate import metric_delaunay
+
+
+def _on_box(points: NDArray, box: tuple[float, float, float, float]) -> NDArray:
+    xmin, ymin, xmax, ymax = box
+    tol = 1e-12 * max(xmax - xmin, ymax - ymin)
+    x, y = points[:, 0], points[:, 1]
+    return (
+        (np.abs(x - xmin) <= tol)
+        | (np.abs(x - xmax) <= tol)
+        | (np.abs(y - ymin) <= tol)
+        | (np.abs(y - ymax) <= tol)
+    )
+
+
+def edge_parabola_lengths(field: MetricField, points: NDArray, edges: NDArray) -> NDArray:
+    """Lengths ``(E,)`` of the shortest parabolas of edges ``(E, 2)`` (search accuracy)."""
+    return shortest_parabola(
+        field,
+        points[edges[:, 0]],
+        points[edges[:, 1]],
+        scan=5,
+        alpha_tol=2e-3,
+        exact_length=False,
+    ).length
+
+
+def relocate(
+    field: MetricField,
+    mesh: Mesh,
+    *,
+    sweeps: int = 6,
+    relax: float = 0.5,
+    power: float = 4.0,
+    min_dist: float = 0.7,
+) -> Mesh:
+    """The P1 ``mesh`` after ``sweeps`` relocation sweeps (see the module docstring)."""
+    pts = np.array(mesh.points, dtype=float)
+    fixed = _on_box(pts, field.box)
+    n = len(pts)
+    cur = mesh
+    for _ in range(sweeps):
+        e = cur.edges
+        length = edge_parabola_lengths(field, pts, e)
+        i = np.concatenate([e[:, 0], e[:, 1]])
+        j = np.concatenate([e[:, 1], e[:, 0]])
+        ln = np.concatenate([length, length])
+        ok = np.isfinite(ln) & (ln > 0)
+        target = pts[j] + (pts[i] - pts[j]) / np.where(ok, ln, 1.0)[:, None]
+        target[~ok] = pts[i[~ok]]
+        # outliers weigh more: w = max(L, 1/L)^power
+        w = np.where(ok, np.maximum(ln, 1.0 / np.where(ok, ln, 1.0)), 1.0) ** power
+        count = np.bincount(i, minlength=n)
+        wsum = np.bincount(i, w, minlength=n)
+        avg = (
+            np.column_stack([np.bincount(i, w * target[:, k], minlength=n) for k in range(2)])
+            / np.maximum(wsum, 1e-300)[:, None]
+        )
+        move = np.where(fixed[:, None] | (count[:, None] == 0), 0.0, relax * (avg - pts))
+        new = pts + move
+        moved = np.flatnonzero(np.abs(move).max(axis=1) > 0)
+        # undo moves that invert a triangle or shorten an edge below min_dist;
+        # undoing one vertex can only help its neighbours, so iterate to a fixpoint
+        tris = cur.corners
+        while moved.size:
+            bad_t = signed_areas(new, tris) <= 0
+            touch = np.isin(e, moved).any(axis=1)
+            short = np.zeros(len(e), dtype=bool)
+            if touch.any():
+                short[touch] = edge_parabola_lengths(field, new, e[touch]) < min_dist
+            bad_v = np.zeros(n, dtype=bool)
+            bad_v[tris[bad_t].ravel()] = True
+            bad_v[e[short].ravel()] = True
+            undo = moved[bad_v[moved] & (np.abs(new[moved] - pts[moved]).max(axis=1) > 0)]
+            if undo.size == 0:
+                break
+            new[undo] = pts[undo]
+            moved = np.setdiff1d(moved, undo)
+        pts = new
+        cur = metric_delaunay(field, Mesh(pts, cur.corners, mesh.box))
+    return cur
