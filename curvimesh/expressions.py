@@ -316,6 +316,8 @@ def parse_expression(
     for key, value in names.items():
         if isinstance(value, bool) or not isinstance(value, (sympy.Expr, int, float)):
             raise TypeError(f"names[{key!r}] is a {type(value).__name__}, not a sympy Expr")
+    if isinstance(text, int) and text.bit_length() > 4 * MAX_LENGTH:
+        raise ExpressionError(f"integer with {text.bit_length()} bits is too long")
     source = text.strip() if isinstance(text, str) else repr(text)
     parser = _Parser(source, names)
     tree = None

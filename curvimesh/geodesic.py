@@ -322,8 +322,9 @@ def shortest_parabola(
 
     α is found by a coarse scan of ``scan`` values in [−alpha_max, alpha_max]
     (the length need not be unimodal over the whole range) and a vectorised
-    golden-section search in the bracket around the best scanned value, down
-    to ``alpha_tol``. The search uses a fixed composite Gauss rule; the
+    Brent search (parabolic interpolation safeguarded by golden-section
+    steps; the paper used golden section alone) in the bracket around the
+    best scanned value, down to ``alpha_tol``. The search uses a fixed composite Gauss rule; the
     returned length is recomputed to 1e-5 relative when ``exact_length``.
     """
     x0 = np.asarray(x0, dtype=float).reshape(-1, 2)
@@ -341,27 +342,64 @@ def shortest_parabola(
     for j, a in enumerate(grid):
         vals[:, j] = length(np.full(n, a))
     best = np.argmin(vals, axis=1)
-    step = grid[1] - grid[0]
-    lo = grid[best] - step
-    hi = grid[best] + step
-    c = hi - GOLDEN * (hi - lo)
-    d = lo + GOLDEN * (hi - lo)
-    fc, fd = length(c), length(d)
-    while (hi - lo).max() > alpha_tol:
-        left = fc <= fd  # the minimum is in [lo, d], else in [c, hi]
-        hi = np.where(left, d, hi)
-        lo = np.where(left, lo, c)
-        probe = np.where(left, hi - GOLDEN * (hi - lo), lo + GOLDEN * (hi - lo))
-        fp = length(probe)
-        c, d = np.where(left, probe, d), np.where(left, c, probe)
-        fc, fd = np.where(left, fp, fd), np.where(left, fc, fp)
-    alpha = 0.5 * (lo + hi)
+    rows = np.arange(n)
+    # bracket (a, b, c) around the best scanned value; ends of the scan stay ends
+    ia, ic = np.maximum(best - 1, 0), np.minimum(best + 1, scan - 1)
+    a, b, c = grid[ia], grid[best], grid[ic]
+    fa, fb, fc = vals[rows, ia], vals[rows, best], vals[rows, ic]
+    alpha, f_alpha = _brent_minimise(length, a, b, c, fa, fb, fc, alpha_tol)
     mid = mid0 + alpha[:, None] * nrm
     if exact_length:
         ln = parabola_length(field, x0, x1, mid)
     else:
-        ln = length(alpha)
+        ln = f_alpha
     return Parabolas(alpha, mid, ln)
+
+
+def _brent_minimise(f, a, b, c, fa, fb, fc, tol: float, max_iter: int = 60):
+    """Vectorised safeguarded parabolic interpolation (Brent 1973) on brackets a ≤ b ≤ c.
+
+    ``f(x, rows)`` evaluates the objective on the given rows. Each iteration
+    tries the vertex of the parabola through the three points and falls back
+    to a golden-section step when that vertex is outside the bracket, too
+    close to b, or every third iteration (which bounds the worst case to the
+    golden rate). Returns the best point ``(n,)`` and its value.
+    """
+    a, b, c = a.astype(float).copy(), b.astype(float).copy(), c.astype(float).copy()
+    fa, fb, fc = fa.copy(), fb.copy(), fc.copy()
+    cgold = 0.3819660112501051
+    for it in range(max_iter):
+        act = np.flatnonzero((c - a) > tol)
+        if act.size == 0:
+            break
+        A, B, C = a[act], b[act], c[act]
+        FA, FB, FC = fa[act], fb[act], fc[act]
+        p = (B - A) ** 2 * (FB - FC) - (B - C) ** 2 * (FB - FA)
+        q = 2.0 * ((B - A) * (FB - FC) - (B - C) * (FB - FA))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = B - p / q
+        eps = 0.25 * tol
+        golden = (
+            ~np.isfinite(u) | (u <= A + eps) | (u >= C - eps) | (np.abs(u - B) < eps)
+            | (it % 3 == 2)
+        )
+        right = (C - B) >= (B - A)
+        ug = np.where(right, B + cgold * (C - B), B - cgold * (B - A))
+        u = np.where(golden, ug, u)
+        fu = f(u, act)
+        fu = np.where(np.isfinite(fu), fu, np.inf)
+        better = fu < FB
+        up = u > B
+        # better: b moves to u, the old b closes the bracket on its side
+        na = np.where(better, np.where(up, B, A), np.where(up, A, u))
+        nfa = np.where(better, np.where(up, FB, FA), np.where(up, FA, fu))
+        nc = np.where(better, np.where(up, C, B), np.where(up, u, C))
+        nfc = np.where(better, np.where(up, FC, FB), np.where(up, fu, FC))
+        nb = np.where(better, u, B)
+        nfb = np.where(better, fu, FB)
+        a[act], b[act], c[act] = na, nb, nc
+        fa[act], fb[act], fc[act] = nfa, nfb, nfc
+    return b, fb
 
 
 def straight_length(field: MetricField, x0: NDArray, x1: NDArray, **kw) -> NDArray:

@@ -145,8 +145,46 @@ def exponents(degree: int, norm: float) -> tuple[float, float]:
     return s / (2.0 * (s + 2.0)), -1.0 / (s + 2.0)
 
 
-def _log_abs(v: NDArray) -> NDArray:
-    return np.log(np.maximum(np.abs(v), _TINY))
+# G = (g11, g12, g22) of the contraction G_il = Σ_jk T_ijk T_ljk, as weights of the
+# products coef_i coef_j (row-major 4×4) of the derivatives (a, b, c, d):
+# g11 = a² + 2b² + c², g12 = ab + 2bc + cd, g22 = b² + 2c² + d².
+_GRAM = np.zeros((3, 16))
+_GRAM[0, [0, 5, 10]] = 1.0, 2.0, 1.0
+_GRAM[1, [1, 6, 11]] = 1.0, 2.0, 1.0
+_GRAM[2, [5, 10, 15]] = 1.0, 2.0, 1.0
+
+# Coefficients of π(s e₁ + t e₂) = A s³ + 3B s²t + 3C st² + D t³, e₁ = (p, q),
+# e₂ = (−q, p): A = π(e₁), B = ∇π(e₁)·e₂/3, C = ∇π(e₂)·e₁/3, D = π(e₂), in the
+# order (A, D, B, C) of the linear program, as weights of the products
+# coef_j · mono_m (row-major 4×4) with the monomials (p³, p²q, pq², q³).
+_ROTATE = np.array(
+    [
+        [[1, 0, 0, 0], [0, 3, 0, 0], [0, 0, 3, 0], [0, 0, 0, 1]],  # A
+        [[0, 0, 0, -1], [0, 0, 3, 0], [0, -3, 0, 0], [1, 0, 0, 0]],  # D
+        [[0, -1, 0, 0], [1, 0, -2, 0], [0, 2, 0, -1], [0, 0, 1, 0]],  # B
+        [[0, 0, 1, 0], [0, -2, 0, 1], [1, 0, -2, 0], [0, 1, 0, 0]],  # C
+    ],
+    dtype=float,
+).reshape(4, 16)
+
+# The linear program of cubic_shape in v = (x_min, y_min, r_b, r_c): the six
+# candidate values of t = X − Y (four crossings, then the two ends, added apart)...
+_CANDIDATES = np.array(
+    [
+        [1.0, -1.0, 0.0, 0.0],
+        [1.5, 0.0, 0.0, -0.5],
+        [0.0, -1.5, 0.5, 0.0],
+        [0.0, 0.0, 1.0, -1.0],
+        [0.0, 0.0, 0.0, 0.0],
+        [0.0, 0.0, 0.0, 0.0],
+    ]
+)
+# ... and the four lower bounds of S = X + Y: offset · v + slope · t.
+_OFFSETS = np.array(
+    [[2.0, 0.0, 0.0, 0.0], [0.0, 2.0, 0.0, 0.0], [0.0, 0.0, 2 / 3, 0.0], [0.0, 0.0, 0.0, 2 / 3]]
+)
+_SLOPES = np.array([-1.0, 1.0, -1 / 3, 1 / 3])
+_LOG_WEIGHTS = np.array([[2 / 3], [2 / 3], [2.0], [2.0]])
 
 
 def _frame(g11: NDArray, g12: NDArray, g22: NDArray) -> tuple[NDArray, NDArray]:
@@ -157,22 +195,19 @@ def _frame(g11: NDArray, g12: NDArray, g22: NDArray) -> tuple[NDArray, NDArray]:
     """
     half = 0.5 * (g11 - g22)
     radius = np.hypot(half, g12)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cos2 = np.where(radius > 0.0, half / radius, 1.0)
-    cos = np.sqrt(np.maximum(0.5 * (1.0 + cos2), 0.0))
-    sin = np.copysign(np.sqrt(np.maximum(0.5 * (1.0 - cos2), 0.0)), g12)
+    cos2 = np.divide(half, radius, out=np.ones_like(half), where=radius > 0.0)
+    cos = np.sqrt(0.5 + 0.5 * cos2)
+    sin = np.copysign(np.sqrt(0.5 - 0.5 * cos2), g12)
     return cos, sin
 
 
-def cubic_shape(
-    a: NDArray, b: NDArray, c: NDArray, d: NDArray, *, max_aspect: float
-) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+def cubic_shape(coef: NDArray, *, max_aspect: float) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """Shape metric of the cubic form a u³ + 3b u²v + 3c uv² + d v³ (see the module).
 
-    Arguments are ``(n,)`` arrays (f_xxx, f_xxy, f_xyy, f_yyy). Returns the
-    frame e₁ = (cos φ, sin φ) as two ``(n,)`` arrays, and ``X, Y`` ``(n,)``,
-    the logs of the eigenvalues q₁, q₂ of Q along e₁ and e₂ = (−sin φ, cos φ):
-    the solution of
+    ``coef`` is ``(4, n)``: rows a = f_xxx, b = f_xxy, c = f_xyy, d = f_yyy.
+    Returns the frame e₁ = (cos φ, sin φ) as two ``(n,)`` arrays, and ``X, Y``
+    ``(n,)``, the logs of the eigenvalues q₁, q₂ of Q along e₁ and
+    e₂ = (−sin φ, cos φ): the solution of
 
         minimise X + Y  subject to  X >= (2/3) log|A|,  Y >= (2/3) log|D|,
         2X + Y >= 2 log|B|,  X + 2Y >= 2 log|C|,  |X − Y| <= 2 log max_aspect,
@@ -181,71 +216,54 @@ def cubic_shape(
     the objective S(t) is the maximum of four affine functions of t, two
     decreasing and two increasing: its minimum over |t| <= 2 log max_aspect is
     at a crossing of a decreasing and an increasing one or at an end.
+    Written as a few operations on whole arrays: it is called on a handful of
+    points at a time by the geodesic integrator.
 
     A pure cube has its fine size 1/|A|^(1/3) across the ridge and the
     largest anisotropy along it; x³ − 3xy² is isotropic:
 
-    >>> cos, sin, X, Y = cubic_shape(np.array([8.0, 1.0]), np.zeros(2),
-    ...                              np.array([0.0, -1.0]), np.zeros(2), max_aspect=100.0)
+    >>> coef = np.array([[8.0, 1.0], [0.0, 0.0], [0.0, -1.0], [0.0, 0.0]])
+    >>> cos, sin, X, Y = cubic_shape(coef, max_aspect=100.0)
     >>> np.exp(-X / 2).round(6).tolist(), np.exp((X - Y) / 2).round(6).tolist()
     ([0.5, 1.0], [100.0, 1.0])
     """
-    cos, sin = _frame(
-        a * a + 2.0 * b * b + c * c, a * b + 2.0 * b * c + c * d, b * b + 2.0 * c * c + d * d
-    )
-    # Coefficients of π(s e1 + t e2) = A s³ + 3B s²t + 3C st² + D t³.
-    cc, cs, ss = cos * cos, cos * sin, sin * sin
-    big_a = cos * (a * cc + 3.0 * b * cs + 3.0 * c * ss) + d * sin * ss
-    big_d = -sin * (a * ss - 3.0 * b * cs + 3.0 * c * cc) + d * cos * cc
-    big_b = a * (-sin * cc) + b * cos * (cc - 2.0 * ss) + c * sin * (2.0 * cc - ss) + d * cos * ss
-    big_c = a * cos * ss + b * sin * (ss - 2.0 * cc) + c * cos * (cc - 2.0 * ss) + d * sin * cc
-    x_min = (2.0 / 3.0) * _log_abs(big_a)
-    y_min = (2.0 / 3.0) * _log_abs(big_d)
-    r_b = 2.0 * _log_abs(big_b)
-    r_c = 2.0 * _log_abs(big_c)
+    n = coef.shape[1]
+    g11, g12, g22 = _GRAM @ (coef[:, None, :] * coef[None, :, :]).reshape(16, n)
+    cos, sin = _frame(g11, g12, g22)
+    cc, ss = cos * cos, sin * sin
+    mono = np.stack([cc * cos, cc * sin, cos * ss, ss * sin])
+    rotated = _ROTATE @ (coef[:, None, :] * mono[None, :, :]).reshape(16, n)
+    v = np.log(np.maximum(np.abs(rotated), _TINY)) * _LOG_WEIGHTS
     cap = 2.0 * math.log(max_aspect)
-    candidates = np.stack(
-        [
-            x_min - y_min,
-            (3.0 * x_min - r_c) / 2.0,
-            (r_b - 3.0 * y_min) / 2.0,
-            r_b - r_c,
-            np.full_like(x_min, -cap),
-            np.full_like(x_min, cap),
-        ]
-    )
-    np.clip(candidates, -cap, cap, out=candidates)
-    values = np.maximum(2.0 * x_min - candidates, 2.0 * y_min + candidates)
-    np.maximum(values, (2.0 * r_b - candidates) / 3.0, out=values)
-    np.maximum(values, (2.0 * r_c + candidates) / 3.0, out=values)
-    best = np.argmin(values, axis=0)[None]
-    t = np.take_along_axis(candidates, best, axis=0)[0]
-    s = np.take_along_axis(values, best, axis=0)[0]
-    return cos, sin, (s + t) / 2.0, (s - t) / 2.0
+    cand = _CANDIDATES @ v
+    cand[4], cand[5] = -cap, cap
+    np.clip(cand, -cap, cap, out=cand)
+    bounds = (_OFFSETS @ v)[:, None, :] + _SLOPES[:, None, None] * cand[None, :, :]
+    s_all = bounds.max(axis=0)
+    best = (s_all.argmin(axis=0), np.arange(n))
+    s, t = s_all[best], cand[best]
+    return cos, sin, 0.5 * (s + t), 0.5 * (s - t)
 
 
-def hessian_shape(
-    fxx: NDArray, fxy: NDArray, fyy: NDArray, *, max_aspect: float
-) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+def hessian_shape(coef: NDArray, *, max_aspect: float) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """Shape metric |H| of the Hessian, as (cos φ, sin φ, X, Y) like :func:`cubic_shape`.
 
-    e₁ = (cos φ, sin φ) is the eigenvector of the larger eigenvalue of H, X and
-    Y the logs of the absolute eigenvalues along it and across it, the smaller
-    raised so that |X − Y| <= 2 log max_aspect.
+    ``coef`` is ``(3, n)``: rows f_xx, f_xy, f_yy. e₁ = (cos φ, sin φ) is the
+    eigenvector of the larger eigenvalue of H, X and Y the logs of the absolute
+    eigenvalues along it and across it, the smaller raised so that
+    |X − Y| <= 2 log max_aspect.
 
-    >>> cos, sin, X, Y = hessian_shape(np.array([2.0]), np.array([0.0]), np.array([-8.0]),
-    ...                                max_aspect=100.0)
+    >>> cos, sin, X, Y = hessian_shape(np.array([[2.0], [0.0], [-8.0]]), max_aspect=100.0)
     >>> [float(cos[0]), float(sin[0])], np.exp([X[0], Y[0]]).round(12).tolist()
     ([1.0, 0.0], [2.0, 8.0])
     """
+    fxx, fxy, fyy = coef
     mean = 0.5 * (fxx + fyy)
     radius = np.hypot(0.5 * (fxx - fyy), fxy)
     cos, sin = _frame(fxx, fxy, fyy)
-    x_log = _log_abs(mean + radius)
-    y_log = _log_abs(mean - radius)
-    cap = 2.0 * math.log(max_aspect)
-    top = np.maximum(x_log, y_log)
-    return cos, sin, np.maximum(x_log, top - cap), np.maximum(y_log, top - cap)
+    x_log, y_log = np.log(np.maximum(np.abs([mean + radius, mean - radius]), _TINY))
+    floor = np.maximum(x_log, y_log) - 2.0 * math.log(max_aspect)
+    return cos, sin, np.maximum(x_log, floor), np.maximum(y_log, floor)
 
 
 def tensor_from_sizes(cos: NDArray, sin: NDArray, h1: NDArray, h2: NDArray) -> NDArray:
@@ -256,11 +274,8 @@ def tensor_from_sizes(cos: NDArray, sin: NDArray, h1: NDArray, h2: NDArray) -> N
     [[16.0, 0.0], [0.0, 4.0]]
     """
     l1, l2 = 1.0 / (h1 * h1), 1.0 / (h2 * h2)
-    g = np.empty((*np.shape(cos), 2, 2))
-    g[..., 0, 0] = l1 * cos * cos + l2 * sin * sin
-    g[..., 0, 1] = g[..., 1, 0] = (l1 - l2) * cos * sin
-    g[..., 1, 1] = l1 * sin * sin + l2 * cos * cos
-    return g
+    cc, ss, cs = cos * cos, sin * sin, (l1 - l2) * cos * sin
+    return np.stack([l1 * cc + l2 * ss, cs, cs, l1 * ss + l2 * cc], axis=-1).reshape(-1, 2, 2)
 
 
 # --------------------------------------------------------------------------- #
@@ -268,14 +283,15 @@ def tensor_from_sizes(cos: NDArray, sin: NDArray, h1: NDArray, h2: NDArray) -> N
 # --------------------------------------------------------------------------- #
 
 
-def _lambdify(exprs: list[sympy.Expr]) -> Callable[[NDArray, NDArray], list[NDArray]]:
-    """Vectorised numpy function of (x, y) returning one array per expression."""
+def _lambdify(exprs: list[sympy.Expr]) -> Callable[[NDArray, NDArray], NDArray]:
+    """Vectorised numpy function of (x, y) ``(n,)`` returning ``(len(exprs), n)``."""
     fn = sympy.lambdify((X, Y), exprs, modules="numpy", cse=True)
 
-    def evaluate(x: NDArray, y: NDArray) -> list[NDArray]:
+    def evaluate(x: NDArray, y: NDArray) -> NDArray:
+        out = np.empty((len(exprs), *np.shape(x)))
         with np.errstate(all="ignore"):
-            values = fn(x, y)
-        return [np.broadcast_to(np.asarray(v, dtype=float), np.shape(x)) for v in values]
+            out[...] = fn(x, y)
+        return out
 
     return evaluate
 
@@ -326,7 +342,7 @@ def compile_function(text: str, *, source: str = "function") -> Callable[[NDArra
 
     def f(points: NDArray) -> NDArray:
         points = np.asarray(points, dtype=float).reshape(-1, 2)
-        return np.array(fn(points[:, 0], points[:, 1])[0], dtype=float)
+        return fn(points[:, 0], points[:, 1])[0]
 
     return f
 
@@ -411,8 +427,8 @@ class InterpolationMetric:
         values = self._fn(pts[:, 0], pts[:, 1])
         hmin, hmax = self.sizes
         if self.degree == 1:
-            return hessian_shape(*values, max_aspect=hmax / hmin)
-        return cubic_shape(*values, max_aspect=hmax / hmin)
+            return hessian_shape(values, max_aspect=hmax / hmin)
+        return cubic_shape(values, max_aspect=hmax / hmin)
 
     def _log_sizes(
         self, x_log: NDArray, y_log: NDArray, log_scale: float

@@ -100,7 +100,9 @@ def intersect_components(a: tuple, b: tuple) -> tuple[NDArray, NDArray, NDArray]
     qb = -(a11 * b22 + a22 * b11 - 2.0 * a12 * b12)
     qc = b11 * b22 - b12 * b12
     disc = qb * qb - 4.0 * qa * qc
-    degenerate = disc.real <= 1e-24 * (qb.real * qb.real)
+    # s1 ≈ s2 (M2 ≈ s M1): the eigenvectors are ill-conditioned, and rounding
+    # makes disc ~1e-16 qb² of either sign; the result is max(1, s) M1 there
+    degenerate = disc.real <= 1e-10 * (qb.real * qb.real)
     root = np.sqrt(np.where(degenerate, 1.0, disc))
     inv2qa = 0.5 / qa
     o11 = o12 = o22 = 0.0
@@ -228,6 +230,10 @@ class Component:
     _sizes_fn: Callable | None = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
+        # min/max as (a + b ∓ |a − b|)/2 before differentiating: d|u| = sign(u) du
+        # lambdifies plainly, where dMax (Heaviside) does not
+        g = tuple(_rewrite_minmax(sympy.sympify(e)) for e in self.g)
+        object.__setattr__(self, "g", g)
         exprs = list(self.g)
         exprs += [sympy.diff(e, X) for e in self.g]
         exprs += [sympy.diff(e, Y) for e in self.g]
