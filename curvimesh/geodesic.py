@@ -380,7 +380,10 @@ def _brent_minimise(f, a, b, c, fa, fb, fc, tol: float, max_iter: int = 60):
             u = B - p / q
         eps = 0.25 * tol
         golden = (
-            ~np.isfinite(u) | (u <= A + eps) | (u >= C - eps) | (np.abs(u - B) < eps)
+            ~np.isfinite(u)
+            | (u <= A + eps)
+            | (u >= C - eps)
+            | (np.abs(u - B) < eps)
             | (it % 3 == 2)
         )
         right = (C - B) >= (B - A)
