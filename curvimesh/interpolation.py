@@ -105,7 +105,7 @@ __all__ = [
     "exponents",
     "hessian_shape",
     "parse_interpolation",
-    "tensor_from_sizes",
+    "tensor_from_frame",
 ]
 
 X, Y = sympy.symbols("x y", real=True)
@@ -266,14 +266,15 @@ def hessian_shape(coef: NDArray, *, max_aspect: float) -> tuple[NDArray, NDArray
     return cos, sin, np.maximum(x_log, floor), np.maximum(y_log, floor)
 
 
-def tensor_from_sizes(cos: NDArray, sin: NDArray, h1: NDArray, h2: NDArray) -> NDArray:
-    """Metric ``(n, 2, 2)`` with size h1 along (cos φ, sin φ) and h2 across it.
+def tensor_from_frame(cos: NDArray, sin: NDArray, l1: NDArray, l2: NDArray) -> NDArray:
+    """Metric ``(n, 2, 2)`` with eigenvalue l1 along (cos φ, sin φ) and l2 across it.
 
-    >>> g = tensor_from_sizes(np.array([0.0]), np.array([1.0]), np.array([0.5]), np.array([0.25]))
+    The sizes along the two directions are l1^(−1/2) and l2^(−1/2):
+
+    >>> g = tensor_from_frame(np.array([0.0]), np.array([1.0]), np.array([4.0]), np.array([16.0]))
     >>> (g[0] + 0.0).tolist()
     [[16.0, 0.0], [0.0, 4.0]]
     """
-    l1, l2 = 1.0 / (h1 * h1), 1.0 / (h2 * h2)
     cc, ss, cs = cos * cos, sin * sin, (l1 - l2) * cos * sin
     return np.stack([l1 * cc + l2 * ss, cs, cs, l1 * ss + l2 * cc], axis=-1).reshape(-1, 2, 2)
 
@@ -393,6 +394,7 @@ class InterpolationMetric:
     quadrature_cells: int = 256
     _fn: Callable = field(init=False, repr=False, compare=False)
     _log_scale: float = field(init=False, repr=False, compare=False)
+    _shifts: NDArray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.degree not in DEGREES:
@@ -405,7 +407,9 @@ class InterpolationMetric:
         if not (math.isfinite(self.vertices) and self.vertices > 0):
             raise ValueError(f"vertices must be positive, got {self.vertices!r}")
         object.__setattr__(self, "_fn", _lambdify(_derivatives(self.function, self.degree + 1)))
-        object.__setattr__(self, "_log_scale", 0.0)
+        h = self.step
+        shifts = np.array([[0.0, 0.0], [h, 0.0], [-h, 0.0], [0.0, h], [0.0, -h]])
+        object.__setattr__(self, "_shifts", shifts[:, None, :])
         object.__setattr__(self, "_log_scale", self._solve_scale())
 
     # -- the construction ---------------------------------------------------- #
@@ -483,8 +487,11 @@ class InterpolationMetric:
 
     def _tensor(self, pts: NDArray) -> NDArray:
         cos, sin, x_log, y_log = self.shape(pts)
-        h1, h2 = self._log_sizes(x_log, y_log, self._log_scale)
-        return tensor_from_sizes(cos, sin, np.exp(h1), np.exp(h2))
+        # log of the eigenvalues μ = h⁻², clamped to [HMAX⁻², HMIN⁻²]
+        common = self._log_scale + self.exponents[1] * (x_log + y_log)
+        lo, hi = -2.0 * math.log(self.sizes[1]), -2.0 * math.log(self.sizes[0])
+        mu = np.exp(np.clip([common + x_log, common + y_log], lo, hi))
+        return tensor_from_frame(cos, sin, mu[0], mu[1])
 
     def evaluate(self, pts: NDArray, derivatives: bool) -> tuple[NDArray, NDArray | None]:
         """g ``(n, 2, 2)`` and, if asked, ∂g ``(n, 2, 2, 2)`` by central differences.
@@ -498,11 +505,11 @@ class InterpolationMetric:
         if not derivatives:
             return self._tensor(pts), None
         h = self.step
-        shifts = np.array([[0.0, 0.0], [h, 0.0], [-h, 0.0], [0.0, h], [0.0, -h]])
-        g_all = self._tensor((pts[None, :, :] + shifts[:, None, :]).reshape(-1, 2))
-        g_all = g_all.reshape(5, n, 2, 2)
+        g_all = self._tensor((pts[None, :, :] + self._shifts).reshape(-1, 2)).reshape(5, n, 2, 2)
         g = g_all[0]
-        dg = np.empty((n, 2, 2, 2))
+        dg = np.stack([g_all[1] - g_all[2], g_all[3] - g_all[4]], axis=-1) * (0.5 / h)
+        if np.isfinite(dg).all():
+            return g, dg
         for k in range(2):
             plus, minus = g_all[1 + 2 * k], g_all[2 + 2 * k]
             ok_p = np.isfinite(plus).all(axis=(1, 2))[:, None, None]

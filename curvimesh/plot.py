@@ -325,6 +325,7 @@ def plot_mesh_report(
 
 
 def _draw_mesh(fig, ax, mesh, nodes, qualities, valid, window) -> None:
+    from matplotlib import colormaps
     from matplotlib.collections import LineCollection, PolyCollection
     from matplotlib.colors import Normalize
 
@@ -337,12 +338,16 @@ def _draw_mesh(fig, ax, mesh, nodes, qualities, valid, window) -> None:
         x0, y0, x1, y1 = window
     # Line widths in points, thinner as more triangles share the picture.
     width = float(np.clip(12.0 / math.sqrt(max(len(shown), 1)), 0.1, 0.8))
-    qmax = float(qualities.max(initial=1.0))
+    qmin, qmax = float(qualities.min()), float(qualities.max())
+    # The scale runs to 1 (the ideal) from 0.5, or lower by steps of 0.1 to
+    # hold the worst triangle. A colormap of few levels reads better and keeps
+    # the PNG small (it compresses runs of equal colour).
+    low = min(0.5, max(0.0, math.floor(10.0 * qmin) / 10.0))
     fill = PolyCollection(
         curved_triangle_polygons(nodes[shown], samples),
         array=qualities[shown],
-        cmap="viridis",
-        norm=Normalize(0.0, 1.0),
+        cmap=colormaps["viridis"].resampled(round(20 * (1.0 - low))),
+        norm=Normalize(low, 1.0),
         edgecolors="none",
         antialiaseds=False,
     )
@@ -361,7 +366,11 @@ def _draw_mesh(fig, ax, mesh, nodes, qualities, valid, window) -> None:
         )
         ax.add_collection(outline)
     fig.colorbar(
-        fill, ax=ax, shrink=0.8, extend="max" if qmax > 1.0 else "neither", label="quality (4)"
+        fill,
+        ax=ax,
+        shrink=0.8,
+        extend=("both" if qmin < low else "max") if qmax > 1.0 else ("min" if qmin < low else "neither"),
+        label="quality (4)",
     )
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
@@ -383,7 +392,7 @@ def _length_histogram(ax, lengths: NDArray) -> None:
     ax.set_xlabel("edge length in the metric")
     ax.set_ylabel("edges")
     ax.set_title(f"{lengths.size} edges, {finite.min(initial=np.inf):.3g} to {lengths.max():.3g}")
-    ax.legend(loc="upper right")
+    ax.legend(loc="best")
 
 
 def _quality_histogram(ax, qualities: NDArray) -> None:
@@ -411,7 +420,7 @@ def plot_circles(
 
     centres = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
     xmin, ymin, xmax, ymax = field.box
-    fig = _new_figure((8.0, 8.0 * (ymax - ymin) / (xmax - xmin) + 0.6))
+    fig = _new_figure((9.5, 8.0 * (ymax - ymin) / (xmax - xmin) + 0.5))
     ax = fig.add_subplot()
     image = ax.imshow(
         _log_density(field),

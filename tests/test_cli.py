@@ -1,0 +1,184 @@
+"""The command line end to end: adapt, the stage pipeline, formats, Gmsh as a reader."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import meshio
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from curvimesh.cli import main
+
+METRIC = """
+name: small
+domain: {box: [[0, 0], [1.5, 1]]}
+parameters: {h: 0.25}
+definitions:
+  s: h * (1 + 0.5*x)
+metric:
+  eigen:
+    sizes: [s / 3, s]
+    angle: 0.4 + 0.6*y
+"""
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cli")
+    (d / "m.yaml").write_text(METRIC)
+    return d
+
+
+def run(*args: str, stdin: bytes | None = None, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "curvimesh", *args],
+        input=stdin,
+        capture_output=True,
+        cwd=cwd,
+        check=False,
+    )
+
+
+@pytest.fixture(scope="module")
+def adapted(workdir):
+    r = run("adapt", "--metric", "m.yaml", "-o", "a.msh", "--stats", "s.json", cwd=workdir)
+    assert r.returncode == 0, r.stderr.decode()
+    return workdir / "a.msh"
+
+
+def test_adapt_writes_a_valid_p2_mesh_and_stats(adapted, workdir):
+    m = meshio.read(adapted)
+    assert {c.type for c in m.cells} == {"triangle6", "line3"}
+    stats = json.loads((workdir / "s.json").read_text())
+    assert stats["valid"] is True
+    assert stats["triangles"] == len(m.cells_dict["triangle6"])
+    assert set(stats["seconds"]) >= {"sample", "triangulate", "curve", "swap", "total"}
+    assert isinstance(stats["swaps"], int)
+    assert stats["edge_length"]["min"] >= 0.7 - 1e-9
+
+
+def test_gmsh_reads_our_mesh_with_positive_jacobians(adapted):
+    gmsh = pytest.importorskip("gmsh")
+    ours = meshio.read(adapted)
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.open(str(adapted))
+        tags, _, _ = gmsh.model.mesh.getNodes()
+        assert len(tags) == len(ours.points)
+        types, elems, _ = gmsh.model.mesh.getElements(2)
+        assert list(types) == [9]  # 6-node second order triangle
+        assert len(elems[0]) == len(ours.cells_dict["triangle6"])
+        q = gmsh.model.mesh.getElementQualities(elems[0], "minDetJac")
+        assert min(q) > 0
+    finally:
+        gmsh.finalize()
+
+
+def test_stage_pipeline_through_pipes_is_byte_identical_to_adapt(adapted, workdir):
+    s = run("sample", "--metric", "m.yaml", "-o", "-", cwd=workdir)
+    assert s.returncode == 0, s.stderr.decode()
+    t = run("triangulate", "-", "--metric", "m.yaml", "-o", "-", stdin=s.stdout, cwd=workdir)
+    assert t.returncode == 0, t.stderr.decode()
+    c = run("curve", "-", "--metric", "m.yaml", "-o", "-", stdin=t.stdout, cwd=workdir)
+    assert c.returncode == 0, c.stderr.decode()
+    w = run("swap", "-", "--metric", "m.yaml", "-o", "p.msh", stdin=c.stdout, cwd=workdir)
+    assert w.returncode == 0, w.stderr.decode()
+    assert (workdir / "p.msh").read_bytes() == adapted.read_bytes()
+    # progress never goes to stdout
+    assert s.stdout.startswith(b"$MeshFormat")
+
+
+def test_same_seed_same_bytes_and_other_seed_still_valid(adapted, workdir):
+    r = run("adapt", "--metric", "m.yaml", "-o", "b.msh", "--seed", "0", cwd=workdir)
+    assert r.returncode == 0
+    assert (workdir / "b.msh").read_bytes() == adapted.read_bytes()
+    r = run("adapt", "--metric", "m.yaml", "-o", "c.msh", "--seed", "7", cwd=workdir)
+    assert r.returncode == 0
+    rep = run("report", "c.msh", "--metric", "m.yaml", "--json", cwd=workdir)
+    assert json.loads(rep.stdout)["valid"] is True
+
+
+def test_msh41_output_reads_back_identically(adapted, workdir):
+    r = run(
+        "curve", "a.msh", "--metric", "m.yaml", "-o", "a41.msh", "--format", "gmsh41", cwd=workdir
+    )
+    assert r.returncode == 0, r.stderr.decode()
+    assert (workdir / "a41.msh").read_text().startswith("$MeshFormat\n4.1")
+    m22 = meshio.read(workdir / "a.msh")
+    m41 = meshio.read(workdir / "a41.msh")
+    np.testing.assert_array_equal(m22.points.shape, m41.points.shape)
+
+
+def test_report_json_matches_the_spec_keys(adapted, workdir):
+    r = CliRunner().invoke(
+        main, ["report", str(adapted), "--metric", str(workdir / "m.yaml"), "--json"]
+    )
+    assert r.exit_code == 0, r.output
+    rep = json.loads(r.stdout)
+    assert set(rep) >= {
+        "vertices",
+        "nodes",
+        "triangles",
+        "edges",
+        "edge_length",
+        "quality",
+        "valid",
+        "invalid_triangles",
+        "straight_invalid_triangles",
+        "metric_area",
+        "ideal_triangles",
+        "efficiency",
+    }
+    assert set(rep["edge_length"]) == {"min", "max", "mean", "p01", "p99", "in_range"}
+    assert set(rep["quality"]) == {"min", "mean", "p01"}
+    assert rep["efficiency"] == pytest.approx(rep["triangles"] / rep["ideal_triangles"])
+
+
+def test_geodesic_command_prints_json(workdir):
+    r = CliRunner().invoke(
+        main,
+        [
+            "geodesic",
+            "--metric",
+            str(workdir / "m.yaml"),
+            "--from",
+            "0.5",
+            "0.5",
+            "--to",
+            "0.6",
+            "0.55",
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout)
+    assert out["length"] <= out["straight_length"] + 1e-12
+    r = CliRunner().invoke(
+        main,
+        [
+            "geodesic",
+            "--metric",
+            str(workdir / "m.yaml"),
+            "--from",
+            "0.5",
+            "0.5",
+            "--angle",
+            "0.3",
+            "--length",
+            "2",
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout)["length"] == 2.0
+
+
+def test_check_metric_prints_the_ideal_count():
+    toy = Path(__file__).resolve().parent.parent / "metrics" / "toy.yaml"
+    r = CliRunner().invoke(main, ["check-metric", str(toy)])
+    assert r.exit_code == 0, r.output
+    assert "ideal triangles 761.8" in r.stdout
