@@ -22,6 +22,7 @@ from curvimesh.mesh import Mesh
 from curvimesh.metric import UNIT_TRIANGLE_AREA, MetricField, density_integral
 from curvimesh.sampling import SamplingOptions, sample_points
 from curvimesh.smooth import relocate
+from curvimesh.split import split_long_edges
 from curvimesh.triangulate import delaunay, metric_delaunay
 
 #: Default bound on the vertex count (SPEC: ``--max-vertices``).
@@ -45,6 +46,7 @@ class AdaptOptions:
     fill: bool = True
     straight: bool = False
     relocate: bool = True
+    split: bool = True
 
 
 def estimated_vertices(metric_area: float) -> float:
@@ -106,6 +108,16 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> _
     return _swap.swap(fld, mesh, max_rounds=opt.max_swap_rounds, straight=opt.straight)
 
 
+def split(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None):
+    """Stage 5: split long curved edges, then swap again; (mesh, splits, swaps)."""
+    opt = options or AdaptOptions()
+    res = split_long_edges(fld, mesh, min_dist=opt.sampling.min_dist)
+    if res.splits == 0:
+        return mesh, 0, 0
+    sw = swap(fld, res.mesh, opt)
+    return sw.mesh, res.splits, sw.swaps
+
+
 @dataclass(frozen=True)
 class AdaptResult:
     """The adapted mesh, the swap count and the seconds of every stage."""
@@ -140,4 +152,11 @@ def adapt(
     res = swap(fld, p2, opt)
     seconds["swap"] = time.perf_counter() - t
     progress(f"swap: {res.swaps} swaps in {res.rounds} rounds ({seconds['swap']:.1f} s)")
-    return AdaptResult(res.mesh, res.swaps, seconds, area)
+    mesh, swaps = res.mesh, res.swaps
+    if opt.split:
+        t = time.perf_counter()
+        mesh, splits, more = split(fld, mesh, opt)
+        swaps += more
+        seconds["split"] = time.perf_counter() - t
+        progress(f"split: {splits} edges split ({seconds['split']:.1f} s)")
+    return AdaptResult(mesh, swaps, seconds, area)

@@ -82,7 +82,7 @@ def search_halfwidths(field: MetricField, pts: NDArray, radius: float) -> NDArra
     return np.column_stack([hw, hw])
 
 
-def _too_close(field: MetricField, a: NDArray, b: NDArray, min_dist: float) -> NDArray:
+def too_close(field: MetricField, a: NDArray, b: NDArray, min_dist: float) -> NDArray:
     """Whether the shortest parabola between rows of a and b is shorter than min_dist ``(p,)``.
 
     The straight segment's length bounds the shortest parabola's from above,
@@ -179,13 +179,13 @@ def accept_candidates(
     radius = search_halfwidths(field, cand, opt.search * opt.min_dist)
     # against the points kept so far
     q, hit = index.query(cand - radius, cand + radius)
-    close = _too_close(field, cand[q], index.points[hit], opt.min_dist)
+    close = too_close(field, cand[q], index.points[hit], opt.min_dist)
     bad = np.zeros(len(cand), dtype=bool)
     bad[q[close]] = True
     cand, radius = cand[~bad], radius[~bad]
     # among the candidates themselves, greedily in order
     i, j = pairs_within_boxes(cand, radius)
-    close = _too_close(field, cand[i], cand[j], opt.min_dist)
+    close = too_close(field, cand[i], cand[j], opt.min_dist)
     return cand[_greedy_independent(len(cand), i[close], j[close])]
 
 
