@@ -102,20 +102,29 @@ def curve(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> 
     return _curve.curve(fld, mesh, straight=opt.straight)
 
 
-def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> _swap.SwapResult:
-    """Stage 4: curvilinear edge swaps driven by quality (4)."""
-    opt = options or AdaptOptions()
-    return _swap.swap(fld, mesh, max_rounds=opt.max_swap_rounds, straight=opt.straight)
+@dataclass(frozen=True)
+class SwapStage:
+    """The mesh after the swap stage, and its counts of swaps, splits and swap rounds."""
+
+    mesh: Mesh
+    swaps: int
+    splits: int
+    rounds: int
 
 
-def split(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None):
-    """Stage 5: split long curved edges, then swap again; (mesh, splits, swaps)."""
+def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> SwapStage:
+    """Stage 4: curvilinear edge swaps driven by quality (4), then (unless
+    ``options.split`` is off) splits of the long curved edges and swaps again."""
     opt = options or AdaptOptions()
-    res = split_long_edges(fld, mesh, min_dist=opt.sampling.min_dist)
-    if res.splits == 0:
-        return mesh, 0, 0
-    sw = swap(fld, res.mesh, opt)
-    return sw.mesh, res.splits, sw.swaps
+    res = _swap.swap(fld, mesh, max_rounds=opt.max_swap_rounds, straight=opt.straight)
+    mesh, swaps, rounds, splits = res.mesh, res.swaps, res.rounds, 0
+    if opt.split and not opt.straight:
+        sp = split_long_edges(fld, mesh, min_dist=opt.sampling.min_dist)
+        splits = sp.splits
+        if splits:
+            res = _swap.swap(fld, sp.mesh, max_rounds=opt.max_swap_rounds)
+            mesh, swaps, rounds = res.mesh, swaps + res.swaps, rounds + res.rounds
+    return SwapStage(mesh, swaps, splits, rounds)
 
 
 @dataclass(frozen=True)
@@ -151,12 +160,9 @@ def adapt(
     t = time.perf_counter()
     res = swap(fld, p2, opt)
     seconds["swap"] = time.perf_counter() - t
-    progress(f"swap: {res.swaps} swaps in {res.rounds} rounds ({seconds['swap']:.1f} s)")
+    progress(
+        f"swap: {res.swaps} swaps in {res.rounds} rounds, {res.splits} splits "
+        f"({seconds['swap']:.1f} s)"
+    )
     mesh, swaps = res.mesh, res.swaps
-    if opt.split:
-        t = time.perf_counter()
-        mesh, splits, more = split(fld, mesh, opt)
-        swaps += more
-        seconds["split"] = time.perf_counter() - t
-        progress(f"split: {splits} edges split ({seconds['split']:.1f} s)")
     return AdaptResult(mesh, swaps, seconds, area)

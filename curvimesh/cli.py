@@ -138,6 +138,25 @@ def straight_option(fn: Callable) -> Callable:
     )(fn)
 
 
+def _options(
+    *,
+    seed: int = 0,
+    max_vertices: int = pipeline.MAX_VERTICES,
+    straight: bool = False,
+    no_fill: bool = False,
+    no_relocate: bool = False,
+    no_split: bool = False,
+) -> pipeline.AdaptOptions:
+    return pipeline.AdaptOptions(
+        seed=seed,
+        max_vertices=max_vertices,
+        straight=straight,
+        fill=not no_fill,
+        relocate=not no_relocate,
+        split=not no_split,
+    )
+
+
 def seed_option(fn: Callable) -> Callable:
     return click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")(fn)
 
@@ -229,11 +248,12 @@ def geodesic(ctx: Context, metric_path, start, end, angle, length) -> None:
     show_default=True,
     help="Fail fast above this estimated vertex count.",
 )
+@click.option("--no-fill", is_flag=True, help="No gap filling after Algorithm 1.")
 @command
-def sample(ctx: Context, metric_path, output, fmt, seed, max_vertices) -> None:
-    """Stage 1: sample points (Algorithm 1); writes nodes with vertex cells."""
+def sample(ctx: Context, metric_path, output, fmt, seed, max_vertices, no_fill) -> None:
+    """Stage 1: sample points (Algorithm 1, then gap filling); writes nodes with vertex cells."""
     fld = load_metric(metric_path)
-    opt = pipeline.AdaptOptions(seed=seed, max_vertices=max_vertices)
+    opt = _options(seed=seed, max_vertices=max_vertices, no_fill=no_fill)
     pipeline.check_size(fld, max_vertices)
     cloud = pipeline.sample(fld, opt)
     ctx.progress(f"sample: {len(cloud.points)} points")
@@ -244,15 +264,20 @@ def sample(ctx: Context, metric_path, output, fmt, seed, max_vertices) -> None:
 @input_argument
 @metric_option(required=False)
 @output_option
+@click.option("--no-relocate", is_flag=True, help="No vertex relocation (with --metric).")
 @command
-def triangulate(ctx: Context, mesh_path, metric_path, output, fmt) -> None:
-    """Stage 2: Delaunay triangulation of the points; writes triangle (P1) cells."""
+def triangulate(ctx: Context, mesh_path, metric_path, output, fmt, no_relocate) -> None:
+    """Stage 2: Delaunay triangulation of the points; writes triangle (P1) cells.
+
+    With --metric the triangulation is made Delaunay in the metric and its
+    vertices are relocated to even out the edge lengths.
+    """
     fld = load_metric(metric_path) if metric_path else None
     cloud = _read(mesh_path, fld)
     if len(cloud.points) < 3:
         raise InputError(f"{mesh_path}: {len(cloud.points)} node(s); at least 3 are needed")
     try:
-        mesh = pipeline.triangulate(cloud, fld)
+        mesh = pipeline.triangulate(cloud, fld, _options(no_relocate=no_relocate))
     except WorkError as exc:  # Qhull failed on these points (all collinear, duplicates)
         raise InputError(f"{mesh_path}: cannot triangulate the nodes: {exc}") from None
     write_mesh(output, mesh, fmt=fmt)
@@ -268,8 +293,7 @@ def curve(ctx: Context, mesh_path, metric_path, output, fmt, straight) -> None:
     """Stage 3: P2 nodes on geodesic parabolas, backtracked to validity."""
     fld = load_metric(metric_path)
     mesh = _require_triangles(_read(mesh_path, fld), mesh_path)
-    opt = pipeline.AdaptOptions(straight=straight)
-    write_mesh(output, pipeline.curve(fld, mesh, opt), fmt=fmt)
+    write_mesh(output, pipeline.curve(fld, mesh, _options(straight=straight)), fmt=fmt)
 
 
 @main.command()
@@ -277,15 +301,16 @@ def curve(ctx: Context, mesh_path, metric_path, output, fmt, straight) -> None:
 @metric_option()
 @output_option
 @straight_option
+@click.option("--no-split", is_flag=True, help="No splits of long curved edges.")
 @command
-def swap(ctx: Context, mesh_path, metric_path, output, fmt, straight) -> None:
+def swap(ctx: Context, mesh_path, metric_path, output, fmt, straight, no_split) -> None:
     """Stage 4: curvilinear edge swaps driven by quality (4)."""
     fld = load_metric(metric_path)
     mesh = _require_triangles(_read(mesh_path, fld), mesh_path)
     if mesh.order != 2:
         raise InputError(f"{mesh_path}: swap needs a P2 (triangle6) mesh; run curve first")
-    res = pipeline.swap(fld, mesh, pipeline.AdaptOptions(straight=straight))
-    ctx.progress(f"swap: {res.swaps} swaps in {res.rounds} rounds")
+    res = pipeline.swap(fld, mesh, _options(straight=straight, no_split=no_split))
+    ctx.progress(f"swap: {res.swaps} swaps in {res.rounds} rounds, {res.splits} splits")
     write_mesh(output, res.mesh, fmt=fmt)
 
 
@@ -314,11 +339,39 @@ def _require_triangles(mesh, path: str):
     help="Fail fast above this estimated vertex count.",
 )
 @straight_option
+@click.option("--no-fill", is_flag=True, help="No gap filling after Algorithm 1.")
+@click.option("--no-relocate", is_flag=True, help="No vertex relocation.")
+@click.option("--no-split", is_flag=True, help="No splits of long curved edges.")
 @command
-def adapt(ctx: Context, metric_path, output, fmt, seed, stats_path, max_vertices, straight) -> None:
-    """All stages: sample | triangulate | curve | swap, in one process."""
+def adapt(
+    ctx: Context,
+    metric_path,
+    output,
+    fmt,
+    seed,
+    stats_path,
+    max_vertices,
+    straight,
+    no_fill,
+    no_relocate,
+    no_split,
+) -> None:
+    """All stages: sample | triangulate | curve | swap, in one process.
+
+    The stages beyond the paper's method (gap filling, vertex relocation,
+    edge splits) run by default; --no-fill, --no-relocate and --no-split turn
+    them off, so that the paper's method alone is `--no-fill --no-relocate
+    --no-split`.
+    """
     fld = load_metric(metric_path)
-    opt = pipeline.AdaptOptions(seed=seed, max_vertices=max_vertices, straight=straight)
+    opt = _options(
+        seed=seed,
+        max_vertices=max_vertices,
+        straight=straight,
+        no_fill=no_fill,
+        no_relocate=no_relocate,
+        no_split=no_split,
+    )
     t0 = time.perf_counter()
     res = pipeline.adapt(fld, opt, progress=ctx.progress)
     total = time.perf_counter() - t0
