@@ -114,8 +114,8 @@ def metric_option(required: bool = True) -> Callable:
     )
 
 
-def output_option(fn: Callable) -> Callable:
-    fn = click.option(
+def format_option(fn: Callable) -> Callable:
+    return click.option(
         "--format",
         "fmt",
         type=click.Choice(sorted(FORMATS)),
@@ -123,6 +123,10 @@ def output_option(fn: Callable) -> Callable:
         show_default=True,
         help="Mesh file format.",
     )(fn)
+
+
+def output_option(fn: Callable) -> Callable:
+    fn = format_option(fn)
     return click.option(
         "-o", "--output", required=True, type=click.Path(), help="Output mesh (- for stdout)."
     )(fn)
@@ -411,9 +415,19 @@ def adapt(
     default=None,
     help="Also report the L2 and Linf errors of the Lagrange interpolant of EXPR(x, y).",
 )
+@click.option(
+    "--window",
+    nargs=4,
+    type=float,
+    default=None,
+    metavar="X0 Y0 X1 Y1",
+    help="With --plot: draw only this rectangle of the mesh (zoom).",
+)
 @command
-def report(ctx: Context, mesh_path, metric_path, as_json, plot_path, function_text) -> None:
+def report(ctx: Context, mesh_path, metric_path, as_json, plot_path, function_text, window) -> None:
     """Edge lengths, qualities and validity of a mesh in a metric."""
+    if window is not None:
+        _check_window(window, plot_path)
     function = compile_function(function_text, source="--function") if function_text else None
     fld = load_metric(metric_path)
     mesh = _require_triangles(_read(mesh_path, fld), mesh_path)
@@ -421,5 +435,131 @@ def report(ctx: Context, mesh_path, metric_path, as_json, plot_path, function_te
     if plot_path:
         from curvimesh.plot import plot_mesh_report
 
-        plot_mesh_report(fld, mesh, plot_path)
+        plot_mesh_report(fld, mesh, plot_path, window=window)
     click.echo(json.dumps(rep, indent=2) if as_json else format_report(rep))
+
+
+def _check_window(window: tuple[float, ...], plot_path: str | None) -> None:
+    x0, y0, x1, y1 = window
+    if plot_path is None:
+        raise InputError("report: --window zooms the picture; give --plot FIG too")
+    if not (all(map(math.isfinite, window)) and x0 < x1 and y0 < y1):
+        raise InputError(f"report: --window {x0:g} {y0:g} {x1:g} {y1:g}: need X0 < X1 and Y0 < Y1")
+
+
+@main.command()
+@metric_option()
+@click.option(
+    "--at",
+    "centres",
+    nargs=2,
+    type=float,
+    multiple=True,
+    required=True,
+    metavar="X Y",
+    help="A centre (repeat for more).",
+)
+@click.option(
+    "--plot",
+    "plot_path",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="The image to draw.",
+)
+@command
+def circles(ctx: Context, metric_path, centres, plot_path) -> None:
+    """Unit geodesic circles at points, with the tangent-plane ellipses (paper figs. 1, 2)."""
+    from curvimesh.plot import plot_circles
+
+    fld = load_metric(metric_path)
+    xmin, ymin, xmax, ymax = fld.box
+    for x, y in centres:
+        if not (xmin <= x <= xmax and ymin <= y <= ymax):
+            raise InputError(
+                f"--at {x:g} {y:g}: outside the box [{xmin:g}, {xmax:g}] x [{ymin:g}, {ymax:g}] "
+                f"of {metric_path}"
+            )
+    pts = np.array(centres, dtype=float)
+    fld.validate(pts)
+    plot_circles(fld, pts, plot_path)
+
+
+@main.command()
+@click.argument("metric_paths", metavar="METRIC...", nargs=-1, required=True, type=click.Path())
+@click.option(
+    "--out-dir",
+    required=True,
+    type=click.Path(file_okay=False),
+    help="Directory for NAME.msh/.json/.txt/.png/-zoom.png and summary.md/.json.",
+)
+@click.option(
+    "--jobs",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Worker processes (1: in this process).",
+)
+@click.option(
+    "--require",
+    "requires",
+    multiple=True,
+    metavar="GATE",
+    help="A condition every run must meet: KEY OP NUMBER (in_range>=0.95, "
+    "edge_length.max<=1.5, quality.min>=0.3) or a yes/no key (valid). Repeatable.",
+)
+@click.option(
+    "--readme",
+    is_flag=True,
+    help="Also write the table and the pictures into the generated part of DIR/README.md.",
+)
+@format_option
+@seed_option
+@straight_option
+@click.option("--no-fill", is_flag=True, help="No gap filling after Algorithm 1.")
+@click.option("--no-relocate", is_flag=True, help="No vertex relocation.")
+@click.option("--no-split", is_flag=True, help="No splits of long curved edges.")
+@command
+def batch(
+    ctx: Context,
+    metric_paths,
+    out_dir,
+    jobs,
+    requires,
+    readme,
+    fmt,
+    seed,
+    straight,
+    no_fill,
+    no_relocate,
+    no_split,
+) -> None:
+    """Adapt every metric file, write its mesh, report and pictures, and a summary.
+
+    Exits 1 when a run fails or misses a --require gate. KEY is a dotted
+    path into the report (edge_length.min, quality.mean, efficiency, swaps,
+    seconds.total); a short name stands for the one path ending in it
+    (in_range, max, p99); min, mean and p01 are ambiguous and need the path.
+    """
+    from curvimesh.batch import parse_gate, run_batch, summary_table
+
+    gates = [parse_gate(text) for text in requires]
+    opt = _options(
+        seed=seed, straight=straight, no_fill=no_fill, no_relocate=no_relocate, no_split=no_split
+    )
+    result = run_batch(
+        metric_paths,
+        out_dir,
+        options=opt,
+        gates=gates,
+        jobs=jobs,
+        fmt=fmt,
+        readme=readme,
+        progress=ctx.progress,
+    )
+    click.echo(summary_table(result))
+    failed = result.as_dict()["failed"]
+    if failed:
+        raise WorkError(
+            f"{len(failed)} of {len(result.runs)} run(s) failed or missed a gate: "
+            f"{', '.join(failed)} (see {Path(out_dir) / 'summary.md'})"
+        )

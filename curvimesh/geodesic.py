@@ -17,6 +17,7 @@ Every function works on arrays of rows (one geodesic or one edge a row).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -210,8 +211,9 @@ def parabola_midnode(x0: NDArray, x1: NDArray, alpha: NDArray) -> NDArray:
     return 0.5 * (x0 + x1) + np.asarray(alpha)[:, None] * bisector_normal(x0, x1)
 
 
+@lru_cache(maxsize=64)
 def _gauss(segments: int, order: int) -> tuple[NDArray, NDArray]:
-    """Composite Gauss–Legendre nodes and weights on [0, 1]."""
+    """Composite Gauss–Legendre nodes and weights on [0, 1] (cached; do not modify)."""
     xg, wg = np.polynomial.legendre.leggauss(order)
     a = np.arange(segments) / segments
     t = (a[:, None] + (xg[None, :] + 1) / (2 * segments)).ravel()
@@ -249,11 +251,19 @@ def parabola_length_rule(
     Rows where the metric is undefined on the curve get +inf.
     """
     t, w = _gauss(segments, order)
-    pts, tan = parabola_points(x0, x1, xm, t)
+    n0, n1, nm = (1 - t) * (1 - 2 * t), t * (2 * t - 1), 4 * t * (1 - t)
+    shape = np.stack([n0, n1, nm], axis=1)  # (k, 3)
+    dshape = np.stack([4 * t - 3, 4 * t - 1, 4 - 8 * t], axis=1)
+    nodes = np.stack([x0, x1, xm], axis=1)  # (n, 3, 2)
+    pts = np.matmul(shape, nodes)  # (n, k, 2)
+    tan = np.matmul(dshape, nodes)
     k = len(t)
     g = field.tensor(pts.reshape(-1, 2), check=False).reshape(len(x0), k, 2, 2)
+    tx, ty = tan[..., 0], tan[..., 1]
     with np.errstate(invalid="ignore"):
-        speed = np.sqrt(np.einsum("pki,pkij,pkj->pk", tan, g, tan))
+        speed = np.sqrt(
+            tx * tx * g[..., 0, 0] + 2 * tx * ty * g[..., 0, 1] + ty * ty * g[..., 1, 1]
+        )
     out = speed @ w
     out[~np.isfinite(out)] = np.inf
     return out

@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from curvimesh.boundary import BoundaryMesh
 from curvimesh.geodesic import (
+    bisector_normal,
     parabola_length_rule,
     shoot,
     shortest_parabola,
@@ -87,21 +88,40 @@ def too_close(field: MetricField, a: NDArray, b: NDArray, min_dist: float) -> ND
 
     The straight segment's length bounds the shortest parabola's from above,
     so a pair whose straight length is below min_dist is close without more
-    work; the parabola is optimised for all the others. No cheaper filter is
-    safe: across a curved anisotropic layer the length, as a function of the
-    bisector offset α, has a valley a few hundredths wide where it drops from
-    3 to 0.6 (the chord crosses the layer, the parabola follows it).
+    work; a pair farther apart than 1.25 min_dist times the largest local
+    size is far; the parabola is optimised for all the others. No cheaper
+    filter on lengths is safe: across a curved anisotropic layer the length,
+    as a function of the bisector offset α, has a valley a few hundredths
+    wide where it drops from 3 to 0.6 (the chord crosses the layer, the
+    parabola follows it).
     """
+    close = np.zeros(len(a), dtype=bool)
     if len(a) == 0:
-        return np.zeros(0, dtype=bool)
+        return close
+    # A curve from a to b is at least |b − a| / H long, H the largest size
+    # 1/sqrt(λ_min(g)) along it; H is sampled where the candidate parabolas
+    # (|α| ≤ 1/2) run: the ends, the midpoint and the two extreme middle nodes.
+    mid = 0.5 * (a + b)
+    nrm = bisector_normal(a, b)
+    probes = np.concatenate([a, b, mid, mid + 0.5 * nrm, mid - 0.5 * nrm])
+    w = np.linalg.eigvalsh(field.tensor(probes, check=False))[:, 0].reshape(5, -1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        h_max = 1.0 / np.sqrt(w.min(axis=0))
+        lower = np.hypot(*(b - a).T) / h_max
+    todo = np.flatnonzero(~(lower >= 1.25 * min_dist))  # 25% margin for H between probes
+    if todo.size == 0:
+        return close
+    a, b = a[todo], b[todo]
+    sub = np.zeros(len(todo), dtype=bool)
     straight = parabola_length_rule(field, a, b, 0.5 * (a + b), segments=2, order=4)
-    close = straight < min_dist
-    maybe = np.flatnonzero(~close)
+    sub[:] = straight < min_dist
+    maybe = np.flatnonzero(~sub)
     if maybe.size:
         par = shortest_parabola(
             field, a[maybe], b[maybe], scan=5, alpha_tol=2e-3, exact_length=False
         )
-        close[maybe] = par.length < min_dist
+        sub[maybe] = par.length < min_dist
+    close[todo] = sub
     return close
 
 
