@@ -4,7 +4,7 @@ VENV    := .venv
 BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 
-.PHONY: demo test lint bench sample-runs clean
+.PHONY: demo test lint bench sample-runs convergence clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -29,7 +29,10 @@ bench: $(STAMP)
 	$(BIN)/python bench/run.py
 
 sample-runs: $(STAMP)
-	$(BIN)/curvimesh batch metrics/*.yaml --out-dir sample_runs --jobs 2
+	$(BIN)/curvimesh batch metrics/*.yaml --out-dir sample_runs --jobs 2 --readme
+
+convergence: $(STAMP)
+	$(BIN)/python bench/convergence.py --out sample_runs
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

@@ -8,7 +8,8 @@ output directory
 * ``NAME.json``: the report of SPEC section 4 plus ``"swaps"`` and
   ``"seconds"`` per stage, as ``adapt --stats`` writes it;
 * ``NAME.txt``: the same report as a readable table;
-* ``NAME.png``: the mesh coloured by quality with the histograms;
+* ``NAME.png``: the mesh coloured by quality with the histograms
+  (:func:`curvimesh.plot.plot_mesh_report`, stored with a 256-colour palette);
 * ``NAME-zoom.png``: the same, zoomed on the densest part of the metric
   (:func:`zoom_window`);
 
@@ -42,10 +43,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 from curvimesh import adapt as pipeline
 from curvimesh.errors import CurvimeshError, InputError
-from curvimesh.io import atomic_write_text, write_mesh
+from curvimesh.io import atomic_output, atomic_write_text, write_mesh
 from curvimesh.mesh import Mesh
 from curvimesh.metric import MetricField, load_metric
 from curvimesh.quality import edge_lengths, metric_areas, quality_from
@@ -202,7 +204,7 @@ class RunResult:
     ``report`` is what ``NAME.json`` holds (None when the run failed, with
     ``error`` its one-line message); ``files`` the names written into the
     output directory; ``gates`` one ``{"gate", "key", "value", "passed"}``
-    a gate (filled in by :func:`run_batch`); ``wall_seconds`` the whole run,
+    per gate (filled in by :func:`run_batch`); ``wall_seconds`` the whole run,
     report and pictures included.
     """
 
@@ -254,7 +256,7 @@ def zoom_window(
     >>> [round(v, 3) for v in zoom_window(fld, mesh)]
     [0.617, 0.283, 0.717, 0.383]
     """
-    xmin, ymin, xmax, ymax = (float(v) for v in (mesh.box or field_.box))
+    xmin, ymin, xmax, ymax = (float(v) for v in (field_.box if mesh.box is None else mesh.box))
     centroids = np.asarray(mesh.points)[mesh.corners].mean(axis=1)
     g = field_.tensor(centroids, check=False)
     with np.errstate(invalid="ignore"):
@@ -266,14 +268,31 @@ def zoom_window(
     return (cx - half_w, cy - half_h, cx + half_w, cy + half_h)
 
 
-def _lengths_and_qualities(field_: MetricField, mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
-    """Edge lengths ``(E,)`` and qualities ``(m,)`` of a P2 mesh, computed once for both plots."""
+def _lengths_and_qualities(field_: MetricField, mesh: Mesh) -> tuple[NDArray, NDArray] | None:
+    """Edge lengths ``(E,)`` and qualities ``(m,)`` of a P2 mesh, computed once for both plots
+    (None for a P1 mesh: the plot computes them)."""
+    if mesh.order != 2:
+        return None
     pts = np.asarray(mesh.points)
     lengths = edge_lengths(field_, pts, mesh.edges, mesh.edge_mid, rtol=1e-4)
     qualities = quality_from(
         metric_areas(field_, pts[mesh.triangles], order=8), lengths[mesh.tri_edges]
     )
     return lengths, qualities
+
+
+def _palette_png(path: Path) -> None:
+    """Rewrite a PNG with a palette of 256 colours, atomically.
+
+    The plots hold a few flat colours and their antialiased edges, so this
+    is hard to tell from the original and about a third of its size.
+    """
+    from PIL import Image  # a dependency of matplotlib
+
+    with Image.open(path) as image:
+        small = image.convert("RGB").quantize(256, dither=Image.Dither.NONE)
+    with atomic_output(path) as tmp:
+        small.save(tmp, format="PNG", optimize=True)
 
 
 def run_one(
@@ -308,20 +327,22 @@ def run_one(
         files.append(f"{name}.json")
         atomic_write_text(out / f"{name}.txt", format_report(report) + "\n")
         files.append(f"{name}.txt")
-        lengths, qualities = _lengths_and_qualities(fld, res.mesh)
-        pictures = {"": None, "-zoom": zoom_window(fld, res.mesh)}
-        for suffix, window in pictures.items():
-            title = f"{name}" if window is None else f"{name}, densest part of the metric"
+        lengths, qualities = _lengths_and_qualities(fld, res.mesh) or (None, None)
+        x0, y0, x1, y1 = zoom_window(fld, res.mesh)
+        zoom = f"densest part of the metric: [{x0:.3g}, {x1:.3g}] x [{y0:.3g}, {y1:.3g}]"
+        for suffix, window, title in (("", None, None), ("-zoom", (x0, y0, x1, y1), zoom)):
+            picture = out / f"{name}{suffix}.png"
             plot_mesh_report(
                 fld,
                 res.mesh,
-                out / f"{name}{suffix}.png",
+                picture,
                 window=window,
                 title=title,
                 lengths=lengths,
                 qualities=qualities,
             )
-            files.append(f"{name}{suffix}.png")
+            _palette_png(picture)
+            files.append(picture.name)
     except CurvimeshError as exc:
         return _failed(name, metric_path, str(exc), files, t0)
     except (MemoryError, RecursionError) as exc:
@@ -560,7 +581,7 @@ def _markdown_errors(result: BatchResult) -> list[str]:
     failed = [r for r in result.runs if not r.ok]
     if not failed:
         return []
-    return ["", "Errors:", ""] + [f"- `{r.metric}`: {_md_escape(r.error or '')}" for r in failed]
+    return ["", "Errors:", ""] + [f"- **{r.name}**: {_md_escape(r.error or '')}" for r in failed]
 
 
 def summary_markdown(result: BatchResult) -> str:
@@ -572,7 +593,7 @@ def summary_markdown(result: BatchResult) -> str:
     lines = [
         "# curvimesh batch summary",
         "",
-        f"Gates: {gates}. Verdict: {verdict}.",
+        f"Options: {_options_text(result.options)}. Gates: {gates}. Verdict: {verdict}.",
         "",
         *_markdown_table(result),
         *_markdown_errors(result),
