@@ -16,12 +16,13 @@ and the affine map. Reported over the domain:
   error that shrinks like h^(2n) against the error's own h³, so the rule is
   exact to rounding in the asymptotic range (tests: against a 12×12 rule and
   against the exact integral of an interpolated cubic).
-* ``linf`` = the largest |e| on the points of the uniform lattice
+* ``linf`` = the largest |e| found on each triangle: on the uniform lattice
   {(i, j)/L : i + j <= L} (L = ``lattice``, 16 by default: 153 points,
-  corners and edges included) and the quadrature points of each triangle: a
-  lower bound of the true maximum. Between lattice points |e| is smooth
-  (quadratic near its maximum), so the bound is short of the maximum by a
-  relative O(1/L²), well under 1 % at L = 16 once the mesh resolves f.
+  corners and edges included) and the quadrature points, then on a 9×9 patch
+  of spacing 1/(4L) around the best lattice point (clipped to the triangle).
+  It is a lower bound of the true maximum; |e| being smooth, quadratic near
+  its maximum, it falls short by a relative O(1/(4L)²): 0.1 % on the
+  interpolation error of a cubic (tested against a 640 000-point sampling).
 """
 
 from __future__ import annotations
@@ -71,6 +72,25 @@ def _p1_shape(uv: NDArray) -> NDArray:
     return np.column_stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]])
 
 
+def _shape(nodes: NDArray, uv: NDArray) -> NDArray:
+    """Lagrange functions of the elements' order at reference points ``(k, 2)``: ``(k, p)``."""
+    return p2_shape(uv) if nodes.shape[1] == 6 else _p1_shape(uv)
+
+
+def _patch_errors(
+    f: Callable[[NDArray], NDArray], nodes: NDArray, values: NDArray, centre: NDArray, step: float
+) -> NDArray:
+    """|e| ``(m, 81)`` on a 9×9 patch of spacing ``step`` around ``centre`` ``(m, 2)``."""
+    offsets = step * (np.stack(np.meshgrid(np.arange(-4, 5), np.arange(-4, 5)), -1).reshape(-1, 2))
+    uv = np.clip(centre[:, None, :] + offsets[None], 0.0, 1.0)  # (m, 81, 2)
+    total = uv.sum(axis=-1, keepdims=True)
+    uv = uv / np.maximum(total, 1.0)  # back onto the hypotenuse
+    shape = _shape(nodes, uv.reshape(-1, 2)).reshape(*uv.shape[:2], -1)  # (m, 81, p)
+    x = np.einsum("mkp,mpd->mkd", shape, nodes)
+    exact = f(x.reshape(-1, 2)).reshape(x.shape[:2])
+    return np.abs(exact - np.einsum("mkp,mp->mk", shape, values))
+
+
 def _element_errors(
     f: Callable[[NDArray], NDArray],
     nodes: NDArray,
@@ -78,11 +98,10 @@ def _element_errors(
     uv: NDArray,
 ) -> tuple[NDArray, NDArray]:
     """e ``(m, k)`` and |J| ``(m, k)`` at reference points ``(k, 2)`` of elements ``(m, p, 2)``."""
+    shape = _shape(nodes, uv)
     if nodes.shape[1] == 6:
-        shape = p2_shape(uv)
         jac = np.abs(p2_jacobian(nodes, uv))
     else:
-        shape = _p1_shape(uv)
         e1 = nodes[:, 1] - nodes[:, 0]
         e2 = nodes[:, 2] - nodes[:, 0]
         area2 = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
@@ -114,6 +133,9 @@ def interpolation_error(
     used = np.unique(mesh.triangles)
     node_values = np.full(len(points), np.nan)
     node_values[used] = np.asarray(f(points[used]), dtype=float).reshape(-1)
+    if not np.isfinite(node_values[used]).all():
+        p = points[used[np.argmax(~np.isfinite(node_values[used]))]]
+        raise InputError(f"the function is not finite at ({p[0]:.6g}, {p[1]:.6g})")
     quad_uv, quad_w = triangle_rule(order)
     dense_uv = reference_lattice(lattice)
     per_chunk = max(1, _CHUNK_POINTS // (len(quad_uv) + len(dense_uv)))
@@ -125,23 +147,17 @@ def interpolation_error(
         err_q, jac = _element_errors(f, nodes, values, quad_uv)
         err_d, _ = _element_errors(f, nodes, values, dense_uv)
         if not (np.isfinite(err_q).all() and np.isfinite(err_d).all()):
-            _raise_not_finite(f, nodes, values, quad_uv, dense_uv)
+            _raise_not_finite(f, nodes, np.concatenate([quad_uv, dense_uv]))
         l2_squared += float(np.sum((err_q * err_q * jac) @ quad_w))
+        centre = dense_uv[np.argmax(np.abs(err_d), axis=1)]
+        patch = _patch_errors(f, nodes, values, centre, 0.25 / lattice)
         linf = max(linf, float(np.abs(err_q).max()), float(np.abs(err_d).max()))
+        linf = max(linf, float(np.nan_to_num(patch, nan=0.0).max()))
     return InterpolationError(float(np.sqrt(l2_squared)), linf)
 
 
-def _raise_not_finite(
-    f: Callable[[NDArray], NDArray], nodes: NDArray, values: NDArray, *uvs: NDArray
-) -> None:
+def _raise_not_finite(f: Callable[[NDArray], NDArray], nodes: NDArray, uv: NDArray) -> None:
     """Raise :class:`InputError` naming the first point where ``f`` is not finite."""
-    bad_node = ~np.isfinite(values)
-    if bad_node.any():
-        t, i = np.argwhere(bad_node)[0]
-        p = nodes[t, i]
-    else:
-        uv = np.concatenate(uvs)
-        shape = p2_shape(uv) if nodes.shape[1] == 6 else _p1_shape(uv)
-        x = (shape @ nodes).reshape(-1, 2)
-        p = x[np.argmax(~np.isfinite(f(x)))]
+    x = (_shape(nodes, uv) @ nodes).reshape(-1, 2)
+    p = x[np.argmax(~np.isfinite(f(x)))]
     raise InputError(f"the function is not finite at ({p[0]:.6g}, {p[1]:.6g})")
