@@ -161,6 +161,16 @@ def _options(
     )
 
 
+def max_vertices_option(fn: Callable) -> Callable:
+    return click.option(
+        "--max-vertices",
+        type=click.IntRange(min=1),
+        default=pipeline.MAX_VERTICES,
+        show_default=True,
+        help="Fail fast above this estimated vertex count.",
+    )(fn)
+
+
 def seed_option(fn: Callable) -> Callable:
     return click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")(fn)
 
@@ -245,13 +255,7 @@ def geodesic(ctx: Context, metric_path, start, end, angle, length) -> None:
 @metric_option()
 @output_option
 @seed_option
-@click.option(
-    "--max-vertices",
-    type=click.IntRange(min=1),
-    default=pipeline.MAX_VERTICES,
-    show_default=True,
-    help="Fail fast above this estimated vertex count.",
-)
+@max_vertices_option
 @click.option("--no-fill", is_flag=True, help="No gap filling after Algorithm 1.")
 @command
 def sample(ctx: Context, metric_path, output, fmt, seed, max_vertices, no_fill) -> None:
@@ -335,13 +339,7 @@ def _require_triangles(mesh, path: str):
     default=None,
     help="Write the report JSON with swaps and seconds per stage.",
 )
-@click.option(
-    "--max-vertices",
-    type=click.IntRange(min=1),
-    default=pipeline.MAX_VERTICES,
-    show_default=True,
-    help="Fail fast above this estimated vertex count.",
-)
+@max_vertices_option
 @straight_option
 @click.option("--no-fill", is_flag=True, help="No gap filling after Algorithm 1.")
 @click.option("--no-relocate", is_flag=True, help="No vertex relocation.")

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
+import functools
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import sympy
 from click.testing import CliRunner
+from clitools import run_cli
 
 from curvimesh import batch
 from curvimesh.cli import main
@@ -27,14 +27,7 @@ FILES = ("{}.msh", "{}.json", "{}.txt", "{}.png", "{}-zoom.png")
 PNG = b"\x89PNG\r\n\x1a\n"
 
 
-def run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "curvimesh", *args],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        check=False,
-    )
+run = functools.partial(run_cli, text=True)
 
 
 @pytest.fixture(scope="module")

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import meshio
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from clitools import run_cli
 
 from curvimesh.cli import main
 
@@ -34,14 +33,7 @@ def workdir(tmp_path_factory):
     return d
 
 
-def run(*args: str, stdin: bytes | None = None, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "curvimesh", *args],
-        input=stdin,
-        capture_output=True,
-        cwd=cwd,
-        check=False,
-    )
+run = run_cli
 
 
 @pytest.fixture(scope="module")

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
+import functools
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from clitools import run_cli
 
 PNG = b"\x89PNG\r\n\x1a\n"
 H = 0.25
@@ -26,14 +26,7 @@ metric:
 """
 
 
-def run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "curvimesh", *args],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        check=False,
-    )
+run = functools.partial(run_cli, text=True)
 
 
 @pytest.fixture(scope="module")
