@@ -769,7 +769,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--max-repeat-seconds",
         type=float,
-        default=40.0,
+        default=25.0,
         help="run a configuration once if its first run takes longer",
     )
     ap.add_argument("--out", type=Path, default=HERE / "results.md")
