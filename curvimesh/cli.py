@@ -161,6 +161,17 @@ def _options(
     )
 
 
+def stage_flags(fn: Callable) -> Callable:
+    """--no-fill, --no-relocate, --no-split: the stages beyond the paper's method."""
+    for name, what in (
+        ("--no-split", "No splits of long curved edges."),
+        ("--no-relocate", "No vertex relocation."),
+        ("--no-fill", "No gap filling after Algorithm 1."),
+    ):
+        fn = click.option(name, is_flag=True, help=what)(fn)
+    return fn
+
+
 def max_vertices_option(fn: Callable) -> Callable:
     return click.option(
         "--max-vertices",
@@ -341,9 +352,7 @@ def _require_triangles(mesh, path: str):
 )
 @max_vertices_option
 @straight_option
-@click.option("--no-fill", is_flag=True, help="No gap filling after Algorithm 1.")
-@click.option("--no-relocate", is_flag=True, help="No vertex relocation.")
-@click.option("--no-split", is_flag=True, help="No splits of long curved edges.")
+@stage_flags
 @command
 def adapt(
     ctx: Context,
@@ -513,9 +522,7 @@ def circles(ctx: Context, metric_path, centres, plot_path) -> None:
 @format_option
 @seed_option
 @straight_option
-@click.option("--no-fill", is_flag=True, help="No gap filling after Algorithm 1.")
-@click.option("--no-relocate", is_flag=True, help="No vertex relocation.")
-@click.option("--no-split", is_flag=True, help="No splits of long curved edges.")
+@stage_flags
 @command
 def batch(
     ctx: Context,

@@ -313,9 +313,6 @@ class Parabolas:
     length: NDArray
 
 
-GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0
-
-
 def shortest_parabola(
     field: MetricField,
     x0: NDArray,
@@ -413,8 +410,3 @@ def _brent_minimise(f, a, b, c, fa, fb, fc, tol: float, max_iter: int = 60):
         a[act], b[act], c[act] = na, nb, nc
         fa[act], fb[act], fc[act] = nfa, nfb, nfc
     return b, fb
-
-
-def straight_length(field: MetricField, x0: NDArray, x1: NDArray, **kw) -> NDArray:
-    """Metric length of straight segments ``(n,)``; an upper bound of the shortest parabola's."""
-    return parabola_length(field, x0, x1, None, **kw)

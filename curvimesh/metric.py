@@ -130,36 +130,28 @@ def intersect_components(a: tuple, b: tuple) -> tuple[NDArray, NDArray, NDArray]
     return o11, o12, o22
 
 
-def intersect_with_derivatives(
-    g1: NDArray, dg1: NDArray, g2: NDArray, dg2: NDArray
-) -> tuple[NDArray, NDArray]:
-    """Intersection and its derivatives, by the complex-step method.
+def intersect_with_derivatives(a: tuple, da: list, b: tuple, db: list) -> tuple[tuple, list]:
+    """Intersection of components a, b and its derivatives, by the complex-step method.
 
-    The intersection is not smooth where the choice of max(1, s_i) switches
-    or where s1 = s2; everywhere else it is an analytic function of (M1, M2),
-    so its directional derivative along (∂M1/∂x_k, ∂M2/∂x_k) is
+    ``a`` = (a11, a12, a22) and ``da[k]`` its derivatives along x_k (likewise
+    b, db). The intersection is not smooth where the choice of max(1, s_i)
+    switches or where s1 = s2; everywhere else it is an analytic function of
+    (M1, M2), so its directional derivative along (∂M1/∂x_k, ∂M2/∂x_k) is
     Im I(M1 + i h ∂M1, M2 + i h ∂M2) / h exactly (to rounding) with h = 1e-30
     (Squire & Trapp 1998). Where it is not smooth this gives the derivative
     of the branch selected at the point, a one-sided derivative, which is
-    what a geodesic integrator stepping across the kink needs.
+    what a geodesic integrator stepping across the kink needs. The real part
+    of a complex step is the value itself (h² is far below rounding).
     """
     h = 1e-30
-    dg = np.empty_like(dg1)
+    out = []
     for k in range(2):
-        z = intersect(g1 + 1j * h * dg1[..., k], g2 + 1j * h * dg2[..., k])
-        dg[..., k] = z.imag / h
-    # the real part of a complex step is the value itself (h² ≪ rounding)
-    return z.real, dg
-
-
-def eigen_decomposition(g: NDArray) -> tuple[NDArray, NDArray]:
-    """Eigenvalues ``(n, 2)`` ascending and unit eigenvectors ``(n, 2, 2)`` (columns).
-
-    Sizes along the eigenvectors are 1/sqrt(eigenvalue): the first column is
-    the direction of the largest size.
-    """
-    w, v = np.linalg.eigh(g)
-    return w, v
+        z = intersect_components(
+            tuple(ai + 1j * h * di for ai, di in zip(a, da[k], strict=True)),
+            tuple(bi + 1j * h * di for bi, di in zip(b, db[k], strict=True)),
+        )
+        out.append(tuple(zi.imag / h for zi in z))
+    return tuple(zi.real for zi in z), out
 
 
 # --------------------------------------------------------------------------- #
@@ -349,23 +341,15 @@ class MetricField:
         # fold the intersection on contiguous component arrays (g11, g12, g22)
         a = _unpack(g)
         da = [_unpack(dg[..., k]) for k in range(2)] if derivatives else []
-        h = 1e-30  # complex step, see intersect_with_derivatives
         with np.errstate(all="ignore"):
             for comp in self.components[1:]:
                 g2, dg2 = comp.evaluate(pts, derivatives)
                 b = _unpack(g2)
-                if not derivatives:
+                if derivatives:
+                    db = [_unpack(dg2[..., k]) for k in range(2)]
+                    a, da = intersect_with_derivatives(a, da, b, db)
+                else:
                     a = intersect_components(a, b)
-                    continue
-                db = [_unpack(dg2[..., k]) for k in range(2)]
-                new_da = []
-                for k in range(2):
-                    z = intersect_components(
-                        tuple(ai + 1j * h * di for ai, di in zip(a, da[k], strict=True)),
-                        tuple(bi + 1j * h * di for bi, di in zip(b, db[k], strict=True)),
-                    )
-                    new_da.append(tuple(zi.imag / h for zi in z))
-                a, da = tuple(zi.real for zi in z), new_da
         g = _pack(*a)
         if not derivatives:
             return g, None

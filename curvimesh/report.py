@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from curvimesh.bezier import valid_exact
 from curvimesh.interpolation_error import interpolation_error
-from curvimesh.mesh import Mesh, signed_areas
+from curvimesh.mesh import Mesh, signed_areas, to_p2_straight
 from curvimesh.metric import UNIT_TRIANGLE_AREA, MetricField, density_integral
 from curvimesh.quality import edge_lengths, metric_areas, quality_from
 
@@ -45,13 +45,8 @@ def mesh_report(
     edges = mesh.edges
     mids = mesh.edge_mid if mesh.order == 2 else None
     lengths = edge_lengths(field, pts, edges, mids, rtol=1e-5)
-    if mesh.order == 2:
-        nodes = pts[mesh.triangles]
-    else:
-        nodes = pts[np.column_stack([mesh.triangles, np.zeros((len(mesh.triangles), 3), int)])]
-        nodes[:, 3] = 0.5 * (nodes[:, 0] + nodes[:, 1])
-        nodes[:, 4] = 0.5 * (nodes[:, 1] + nodes[:, 2])
-        nodes[:, 5] = 0.5 * (nodes[:, 2] + nodes[:, 0])
+    p2 = mesh if mesh.order == 2 else to_p2_straight(mesh)
+    nodes = np.asarray(p2.points)[p2.triangles]
     area = metric_areas(field, nodes, order=8)
     q = quality_from(area, lengths[mesh.tri_edges])
     valid = valid_exact(nodes)

@@ -166,10 +166,10 @@ def swap(
         opt_mid = optimal.mid[optimal.find(ncd)[0]]
         seg_mid = 0.5 * (pts[c] + pts[d])
         # outer edges' nodes: t1' = (a, d, c) edges ad, dc, ca; t2' = (d, b, c) edges db, bc, cd
-        m_ad = store.mid[store.find(store.key(a, d))[0]]
-        m_ca = store.mid[store.find(store.key(c, a))[0]]
-        m_db = store.mid[store.find(store.key(d, b))[0]]
-        m_bc = store.mid[store.find(store.key(b, c))[0]]
+        # the four outer edges, looked up once for their nodes and lengths
+        p_ad, p_ca = store.find(store.key(a, d))[0], store.find(store.key(c, a))[0]
+        p_db, p_bc = store.find(store.key(d, b))[0], store.find(store.key(b, c))[0]
+        m_ad, m_ca, m_db, m_bc = (store.mid[p] for p in (p_ad, p_ca, p_db, p_bc))
         level = np.full(len(a), -1)
         new_mid = seg_mid.copy()
         for li, s in enumerate(BACKTRACK):
@@ -196,10 +196,7 @@ def swap(
         if valid.any():
             v = np.flatnonzero(valid)
             l_cd = edge_lengths_fast(field, pts[c[v]], pts[d[v]], new_mid[v])
-            l_ad = store.length[store.find(store.key(a[v], d[v]))[0]]
-            l_ca = store.length[store.find(store.key(c[v], a[v]))[0]]
-            l_db = store.length[store.find(store.key(d[v], b[v]))[0]]
-            l_bc = store.length[store.find(store.key(b[v], c[v]))[0]]
+            l_ad, l_ca, l_db, l_bc = (store.length[p[v]] for p in (p_ad, p_ca, p_db, p_bc))
             n1 = _nodes(
                 pts, np.column_stack([a, d, c])[v], np.stack([m_ad[v], new_mid[v], m_ca[v]], axis=1)
             )
