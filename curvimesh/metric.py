@@ -53,6 +53,9 @@ MAX_BOX = 1e100
 MAX_ITEMS = 32
 #: Most expressions parsed for one file, outer definitions counted once per item.
 MAX_EXPRESSIONS = 1000
+#: Points per block when evaluating compiled expressions (each of their intermediate
+#: arrays then takes at most 1 MB).
+EVAL_BLOCK = 131_072
 
 TOP_KEYS = ("name", "description", "domain", "parameters", "definitions", "metric")
 ITEM_KEYS = ("parameters", "definitions")
@@ -235,7 +238,24 @@ class Component:
         object.__setattr__(self, "_sizes_fn", sizes_fn)
 
     def evaluate(self, pts: NDArray, derivatives: bool) -> tuple[NDArray, NDArray | None]:
-        """g ``(n,2,2)`` and, if asked, ∂g ``(n,2,2,2)`` (exact, from sympy)."""
+        """g ``(n,2,2)`` and, if asked, ∂g ``(n,2,2,2)`` (exact, from sympy).
+
+        Points are evaluated in blocks of :data:`EVAL_BLOCK` (the compiled
+        expressions are elementwise, so the values do not depend on the blocks;
+        the blocks bound the memory of their intermediate arrays).
+        """
+        if len(pts) <= EVAL_BLOCK:
+            return self._evaluate(pts, derivatives)
+        g = np.empty((len(pts), 2, 2))
+        dg = np.empty((len(pts), 2, 2, 2)) if derivatives else None
+        for start in range(0, len(pts), EVAL_BLOCK):
+            rows = slice(start, start + EVAL_BLOCK)
+            g[rows], d = self._evaluate(pts[rows], derivatives)
+            if dg is not None:
+                dg[rows] = d
+        return g, dg
+
+    def _evaluate(self, pts: NDArray, derivatives: bool) -> tuple[NDArray, NDArray | None]:
         x, y = pts[:, 0], pts[:, 1]
         if not derivatives:
             v = self._gfn(x, y)
@@ -308,7 +328,7 @@ class MetricField:
             g[bad] = np.nan
         if derivatives:
             assert dg is not None
-            nf = ~np.isfinite(dg).all(axis=(1, 2, 3)) & ~bad
+            nf = ~_finite_rows(dg) & ~bad
             if nf.any():
                 dg[nf] = self._central_difference(pts[nf])
             if bad.any():
@@ -321,7 +341,7 @@ class MetricField:
 
     def _raw(self, pts: NDArray, derivatives: bool) -> tuple[NDArray, NDArray | None]:
         g, dg = self._raw_once(pts, derivatives)
-        bad = ~np.isfinite(g).all(axis=(1, 2))
+        bad = ~_finite_rows(g)
         if bad.any():
             # An isolated 0/0 of the expressions (sympy writes cos(atan2(y, x)) as
             # x/sqrt(x² + y²), undefined at the origin): take the value at a point
@@ -395,11 +415,31 @@ class MetricField:
         return np.column_stack([gx.ravel(), gy.ravel()])
 
 
+#: Rows of 4 or 8 booleans read as one unsigned integer: all True is 0x01 in every byte.
+_ALL_TRUE = {4: (np.uint32, 0x01010101), 8: (np.uint64, 0x0101010101010101)}
+
+
+def _finite_rows(arr: NDArray) -> NDArray:
+    """Whether all entries of each row of ``arr`` ``(n, 2, 2)`` or ``(n, 2, 2, 2)`` are finite.
+
+    Same as ``np.isfinite(arr).all(axis=(1, ...))``; numpy reduces such short
+    rows slowly, so each row of 4 or 8 booleans is compared as one integer.
+    """
+    ok = np.ascontiguousarray(np.isfinite(arr)).reshape(len(arr), math.prod(arr.shape[1:]))
+    if ok.shape[1] not in _ALL_TRUE:
+        return ok.all(axis=1)
+    kind, all_true = _ALL_TRUE[ok.shape[1]]
+    return ok.view(kind)[:, 0] == all_true
+
+
 def _spd(g: NDArray) -> NDArray:
+    """Whether each tensor of ``g`` ``(n, 2, 2)`` is finite and positive definite ``(n,)``.
+
+    All four entries finite, g₁₁ > 0 and det g > 0 (which, with g₁₁ > 0, implies g₂₂ > 0).
+    """
     with np.errstate(invalid="ignore"):
-        finite = np.isfinite(g).all(axis=(1, 2))
         det = g[:, 0, 0] * g[:, 1, 1] - g[:, 0, 1] * g[:, 1, 0]
-        return finite & (g[:, 0, 0] > 0) & (det > 0)
+        return _finite_rows(g) & (g[:, 0, 0] > 0) & (det > 0)
 
 
 def _fmt(g: NDArray) -> str:

@@ -83,8 +83,26 @@ def search_halfwidths(field: MetricField, pts: NDArray, radius: float) -> NDArra
     return np.column_stack([hw, hw])
 
 
+#: Pairs tested at once by :func:`too_close`: its temporaries (five probes, eight
+#: quadrature points and the parabola search per pair) stay some tens of MB
+#: whatever the number of pairs (millions in the gap filling of a 10⁵-vertex mesh).
+PAIR_BLOCK = 32_768
+
+
 def too_close(field: MetricField, a: NDArray, b: NDArray, min_dist: float) -> NDArray:
     """Whether the shortest parabola between rows of a and b is shorter than min_dist ``(p,)``.
+
+    Pairs are tested in blocks of :data:`PAIR_BLOCK` (see :func:`_too_close_block`).
+    """
+    close = np.zeros(len(a), dtype=bool)
+    for start in range(0, len(a), PAIR_BLOCK):
+        rows = slice(start, start + PAIR_BLOCK)
+        close[rows] = _too_close_block(field, a[rows], b[rows], min_dist)
+    return close
+
+
+def _too_close_block(field: MetricField, a: NDArray, b: NDArray, min_dist: float) -> NDArray:
+    """:func:`too_close` on one block of pairs.
 
     The straight segment's length bounds the shortest parabola's from above,
     so a pair whose straight length is below min_dist is close without more

@@ -48,6 +48,70 @@ def edge_parabola_lengths(field: MetricField, points: NDArray, edges: NDArray) -
     ).length
 
 
+def _undo_bad_moves(
+    field: MetricField,
+    old: NDArray,
+    new: NDArray,
+    moved: NDArray,
+    edges: NDArray,
+    tris: NDArray,
+    min_dist: float,
+) -> NDArray:
+    """The positions ``new`` ``(n, 2)`` with the bad moves of vertices ``moved`` undone.
+
+    A moved vertex goes back to ``old`` when it is a corner of a triangle of
+    ``tris`` that is inverted (signed area ≤ 0) or an end of an edge of
+    ``edges`` that touches a moved vertex and whose shortest parabola is
+    shorter than ``min_dist``; undoing one vertex can only help its
+    neighbours, so this repeats until no move is undone. Each pass re-measures
+    only the triangles and edges at the vertices just undone: nothing else
+    changes (an edge between two vertices that stay put is not checked).
+    """
+    n = len(new)
+    new = new.copy()
+    if moved.size == 0:
+        return new
+    is_moved = np.zeros(n, dtype=bool)
+    is_moved[moved] = True
+    bad_t = signed_areas(new, tris) <= 0
+    short = np.zeros(len(edges), dtype=bool)
+    touch = np.flatnonzero(is_moved[edges].any(axis=1))
+    _update_short(field, new, edges, touch, is_moved, short, min_dist)
+    while moved.size:
+        bad_v = np.zeros(n, dtype=bool)
+        bad_v[tris[bad_t].ravel()] = True
+        bad_v[edges[short].ravel()] = True
+        undo = moved[bad_v[moved] & (np.abs(new[moved] - old[moved]).max(axis=1) > 0)]
+        if undo.size == 0:
+            break
+        new[undo] = old[undo]
+        moved = np.setdiff1d(moved, undo)
+        is_moved[undo] = False
+        undone = np.zeros(n, dtype=bool)
+        undone[undo] = True
+        at = np.flatnonzero(undone[tris].any(axis=1))
+        bad_t[at] = signed_areas(new, tris[at]) <= 0
+        at = np.flatnonzero(undone[edges].any(axis=1))
+        _update_short(field, new, edges, at, is_moved, short, min_dist)
+    return new
+
+
+def _update_short(
+    field: MetricField,
+    pts: NDArray,
+    edges: NDArray,
+    rows: NDArray,
+    is_moved: NDArray,
+    short: NDArray,
+    min_dist: float,
+) -> None:
+    """Set ``short[rows]``: the edge touches a moved vertex and its parabola is below min_dist."""
+    short[rows] = False
+    rows = rows[is_moved[edges[rows]].any(axis=1)]
+    if rows.size:
+        short[rows] = edge_parabola_lengths(field, pts, edges[rows]) < min_dist
+
+
 def relocate(
     field: MetricField,
     mesh: Mesh,
@@ -82,23 +146,7 @@ def relocate(
         move = np.where(fixed[:, None] | (count[:, None] == 0), 0.0, relax * (avg - pts))
         new = pts + move
         moved = np.flatnonzero(np.abs(move).max(axis=1) > 0)
-        # undo moves that invert a triangle or shorten an edge below min_dist;
-        # undoing one vertex can only help its neighbours, so iterate to a fixpoint
-        tris = cur.corners
-        while moved.size:
-            bad_t = signed_areas(new, tris) <= 0
-            touch = np.isin(e, moved).any(axis=1)
-            short = np.zeros(len(e), dtype=bool)
-            if touch.any():
-                short[touch] = edge_parabola_lengths(field, new, e[touch]) < min_dist
-            bad_v = np.zeros(n, dtype=bool)
-            bad_v[tris[bad_t].ravel()] = True
-            bad_v[e[short].ravel()] = True
-            undo = moved[bad_v[moved] & (np.abs(new[moved] - pts[moved]).max(axis=1) > 0)]
-            if undo.size == 0:
-                break
-            new[undo] = pts[undo]
-            moved = np.setdiff1d(moved, undo)
+        new = _undo_bad_moves(field, pts, new, moved, e, cur.corners, min_dist)
         pts = new
         cur = metric_delaunay(field, Mesh(pts, cur.corners, mesh.box))
     return cur

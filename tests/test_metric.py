@@ -199,3 +199,28 @@ def test_non_spd_point_is_named():
 def test_negative_size_is_an_error():
     with pytest.raises(MetricError, match="size is not finite and positive"):
         load_metric_text("metric: {isotropic: x - 0.5}\n", source="m.yaml")
+
+
+def test_blocked_evaluation_and_spd_check_match_the_plain_ones(monkeypatch):
+    """Evaluating in blocks gives the same bits; the SPD check is that of the (n, 2, 2) tensors."""
+    import curvimesh.metric as metric
+
+    fld = load_metric(METRICS / "three_toys.yaml")
+    pts = np.random.default_rng(3).uniform(-2, 2, (1001, 2))
+    g, dg = fld.evaluate(pts, derivatives=True)
+    monkeypatch.setattr(metric, "EVAL_BLOCK", 64)
+    g2, dg2 = fld.evaluate(pts, derivatives=True)
+    assert np.array_equal(g, g2) and np.array_equal(dg, dg2)
+    bad = rand_spd(np.random.default_rng(4), 400)
+    bad[::7, 0, 0] = -bad[::7, 0, 0]
+    bad[1::5, 0, 1] = np.nan
+    bad[2::11, 1, 0] = np.inf
+    bad[3::13, 1, 1] = 0.0
+    with np.errstate(invalid="ignore"):
+        det = bad[:, 0, 0] * bad[:, 1, 1] - bad[:, 0, 1] * bad[:, 1, 0]
+        want = np.isfinite(bad).all(axis=(1, 2)) & (bad[:, 0, 0] > 0) & (det > 0)
+    assert np.array_equal(metric._spd(bad), want)
+    d4 = np.where(np.arange(8) % 3 == 0, np.nan, 1.0)[None].repeat(3, 0).reshape(3, 2, 2, 2)
+    d4[1] = 1.0
+    assert metric._finite_rows(d4).tolist() == [False, True, False]
+    assert metric._finite_rows(np.zeros((0, 2, 2))).shape == (0,)

@@ -210,3 +210,52 @@ def test_max_vertices_fails_fast():
     fld = load_metric_text("metric: {isotropic: 0.001}\n", source="fine.yaml")
     with pytest.raises(InputError, match="about 1,154,701 vertices"):
         pipeline.adapt(fld, pipeline.AdaptOptions(max_vertices=1000))
+
+
+def test_relocation_undo_matches_full_remeasuring():
+    """Undoing bad moves re-measures only at undone vertices, with the result of
+    re-measuring every edge at a moved vertex on every pass."""
+    from curvimesh.mesh import signed_areas
+    from curvimesh.smooth import _on_box, _undo_bad_moves, edge_parabola_lengths
+    from curvimesh.triangulate import delaunay, metric_delaunay
+
+    fld = load_metric_text(CONSTANT)
+    cloud = pipeline.sample(fld)
+    mesh = metric_delaunay(fld, delaunay(np.asarray(cloud.points), box=fld.box))
+    pts, e, tris = np.asarray(mesh.points), mesh.edges, mesh.corners
+    moved = np.flatnonzero(~_on_box(pts, fld.box))
+    new = pts.copy()
+    # random moves: some invert triangles or shorten edges, undoing takes several passes
+    new[moved] += np.random.default_rng(5).normal(scale=0.03, size=(len(moved), 2))
+    got = _undo_bad_moves(fld, pts, new, moved, e, tris, 0.7)
+    # the plain loop: everything re-measured on every pass
+    ref = new.copy()
+    while moved.size:
+        bad_t = signed_areas(ref, tris) <= 0
+        touch = np.isin(e, moved).any(axis=1)
+        short = np.zeros(len(e), dtype=bool)
+        if touch.any():
+            short[touch] = edge_parabola_lengths(fld, ref, e[touch]) < 0.7
+        bad_v = np.zeros(len(ref), dtype=bool)
+        bad_v[tris[bad_t].ravel()] = True
+        bad_v[e[short].ravel()] = True
+        undo = moved[bad_v[moved] & (np.abs(ref[moved] - pts[moved]).max(axis=1) > 0)]
+        if undo.size == 0:
+            break
+        ref[undo] = pts[undo]
+        moved = np.setdiff1d(moved, undo)
+    assert np.array_equal(got, ref)
+    assert not np.array_equal(got, new) and not np.array_equal(got, pts)
+
+
+def test_too_close_in_blocks_matches_one_block(monkeypatch):
+    import curvimesh.sampling as sampling
+
+    fld = load_metric_text(CONSTANT)
+    rng = np.random.default_rng(6)
+    a = rng.uniform([0, 0], [2, 1], (500, 2))
+    b = a + rng.normal(scale=0.1, size=(500, 2))
+    whole = sampling.too_close(fld, a, b, 0.7)
+    monkeypatch.setattr(sampling, "PAIR_BLOCK", 37)
+    assert np.array_equal(sampling.too_close(fld, a, b, 0.7), whole)
+    assert 0 < whole.sum() < len(whole)
