@@ -30,6 +30,7 @@ bench: $(STAMP)
 
 sample-runs: $(STAMP)
 	$(BIN)/curvimesh batch metrics/*.yaml --out-dir sample_runs --jobs 2 --readme
+	$(BIN)/python bench/ablation.py metrics/*.yaml --out sample_runs --jobs 2
 
 convergence: $(STAMP)
 	$(BIN)/python bench/convergence.py --out sample_runs
