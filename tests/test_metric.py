@@ -177,18 +177,22 @@ metric:
     fld = load_metric_text(text)
     p = np.array([[0.3, 0.6]])
     _, dg = fld.evaluate(p, derivatives=True)
-    h = 1e-6
+    h = 1e-5
+    g0 = fld.tensor(p)
     for k in range(2):
         e = np.zeros(2)
         e[k] = h
         gp, gm = fld.tensor(p + e), fld.tensor(p - e)
         fd = (gp - gm) / (2 * h)
         # one-sided differences agree when the point is not on a kink
-        fwd = (gp - fld.tensor(p)) / h
-        bwd = (fld.tensor(p) - gm) / h
+        fwd = (gp - g0) / h
+        bwd = (g0 - gm) / h
         scale = np.abs(fd).max() + 1.0
+        # the intersection is computed to about 1e-13 relative (an eigenproblem), an
+        # error the difference quotient divides by h: allowed for beside truncation
+        rounding = 1e-12 * np.abs(g0).max() / h
         if np.abs(fwd - bwd).max() < 1e-3 * scale:
-            assert np.abs(fd - dg[..., k]).max() < 1e-5 * scale
+            assert np.abs(fd - dg[..., k]).max() < 1e-5 * scale + rounding
 
 
 def test_non_spd_point_is_named():
