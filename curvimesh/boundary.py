@@ -8,11 +8,13 @@ edge's metric length (paper section 3 starts Algorithm 1 from this 1D mesh).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
+from curvimesh.geodesic import shortest_parabola
 from curvimesh.metric import MetricField
 
 
@@ -56,22 +58,163 @@ def corner_edge_lengths(
     ``target`` end closer than ``min_dist`` to each other. With M = g(corner)
     and û, ŵ the unit (in M) directions of the two sides leaving the corner,
     the edge ends are ℓ|û − ŵ|_M apart, so the edges get the length
-    ℓ = min_dist / |û − ŵ|_M, between ``target`` and ``max_length``. A corner
-    that needs more than ``max_length`` keeps a short edge across it: no
-    triangulation of a corner that sharp has all its edges in range.
+    ℓ = min_dist / |û − ŵ|_M, at least ``target`` and (infinite when the
+    cap applies) at most ``max_length``; a corner that needs more gets the
+    staggered vertices of :func:`wedge_distances` instead.
     """
-    xmin, ymin, xmax, ymax = field.box
-    corners = np.array([[xmin, ymin], [xmax, ymin], [xmax, ymax], [xmin, ymax]])
-    g = field.tensor(corners)
+    g, _ = _corner_frames(field)
     out = np.empty(4)
-    for k in range(4):
-        u = corners[(k + 1) % 4] - corners[k]
-        w = corners[(k - 1) % 4] - corners[k]
+    for k, (u, w) in enumerate(_corner_sides(field)):
         u = u / np.sqrt(u @ g[k] @ u)
         w = w / np.sqrt(w @ g[k] @ w)
         gap = float(np.sqrt((u - w) @ g[k] @ (u - w)))
         # 2% margin: the metric varies over the corner's two edges
         out[k] = min(max(target, 1.02 * min_dist / gap), max_length)
+    return out
+
+
+def _corner_frames(field: MetricField) -> tuple[NDArray, NDArray]:
+    """The metric ``(4, 2, 2)`` at the box corners and the corners ``(4, 2)``."""
+    xmin, ymin, xmax, ymax = field.box
+    corners = np.array([[xmin, ymin], [xmax, ymin], [xmax, ymax], [xmin, ymax]])
+    return field.tensor(corners), corners
+
+
+def _corner_sides(field: MetricField) -> list[tuple[NDArray, NDArray]]:
+    """For each corner k, the two sides leaving it: towards corner k+1, towards corner k−1."""
+    _, c = _corner_frames(field)
+    return [(c[(k + 1) % 4] - c[k], c[(k - 1) % 4] - c[k]) for k in range(4)]
+
+
+def corner_angles(field: MetricField) -> NDArray:
+    """The angle ``(4,)`` between the two sides at each box corner, in the metric there.
+
+    cos θ = uᵀMw / (|u|_M |w|_M) for the side directions u, w and M = g(corner).
+    """
+    g, _ = _corner_frames(field)
+    out = np.empty(4)
+    for k, (u, w) in enumerate(_corner_sides(field)):
+        cos = (u @ g[k] @ w) / np.sqrt((u @ g[k] @ u) * (w @ g[k] @ w))
+        out[k] = float(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return out
+
+
+def wedge_distances(
+    theta: float,
+    *,
+    target: float = 1.0,
+    min_dist: float = 0.7,
+    max_length: float = 1.5,
+    margin: float = 0.005,
+    tries: int = 64,
+) -> tuple[NDArray, NDArray] | None:
+    """Staggered boundary vertices near a corner of angle θ: metric distances from it.
+
+    Returns the distances along the first side and along the second, or None
+    when no staggering meets the bounds. In the corner's metric the two sides
+    are rays at the angle θ; a vertex at distance s on one and one at t on
+    the other are c(s, t) = sqrt(s² + t² − 2st cos θ) apart (law of cosines),
+    so near a sharp corner two vertices facing each other would make a short
+    edge. The vertices alternate between the sides instead,
+    0 = t₀ < t₁ < t₂ < … (odd ones on the first side, even ones on the
+    second), each one as close to the target spacing as the bounds allow:
+    t_{k+1} = max(t_{k−1} + target, the smallest t with c(t_k, t) ≥ ℓ_min),
+    with ℓ_min = min_dist (1 + margin). Then each triangle of the zigzag
+    (t_{k−1}, t_k, t_{k+1}) has two cross edges of at least ℓ_min and a side
+    edge t_{k+1} − t_{k−1}, which must not exceed max_length / (1 + margin).
+    Solving c(s, t) = ℓ for t gives t = s cos θ + sqrt(ℓ² − s² sin² θ) while
+    s sin θ < ℓ (beyond, the other side is ℓ away and any t will do). The
+    first distance t₁ is the one of ``tries`` values from target down to ℓ_min
+    whose longest side edge is shortest (the first such); the staggering ends once the
+    sides are ℓ_min apart at both last vertices (s sin θ ≥ ℓ_min), where a
+    regular spacing cannot make a short cross edge. A feasible t₁ exists for
+    every θ > 0 when max_length ≥ 2 min_dist (with t₁ = min_dist, t₂ ≈ 2 min_dist
+    for small θ), which is why a corner needs no edge shorter than min_dist.
+    """
+    lo = min_dist * (1.0 + margin)
+    hi = max_length / (1.0 + margin)
+    sin, cos = math.sin(theta), math.cos(theta)
+    if sin <= 0.0:
+        return None
+
+    def t_cross(s: float) -> float:
+        if s * sin >= lo:
+            return s
+        return s * cos + math.sqrt(lo * lo - (s * sin) ** 2)
+
+    best, best_edge = None, math.inf
+    for t1 in np.linspace(max(target, lo), lo, tries):
+        seq, edge = [0.0, float(t1)], float(t1)
+        while edge <= hi and not (seq[-1] * sin >= lo and seq[-2] * sin >= lo):
+            t = max(seq[-2] + target, t_cross(seq[-1]))
+            edge = max(edge, t - seq[-2])
+            seq.append(t)
+        if edge <= hi and edge < best_edge:
+            best, best_edge = seq, edge
+    if best is None:
+        return None
+    return np.array(best[1::2]), np.array(best[2::2])
+
+
+#: Margins tried in turn for a corner's staggering, until its cross edges pass in the metric.
+WEDGE_MARGINS = (0.005, 0.02, 0.05, 0.1, 0.2)
+
+
+def _side_tables(field: MetricField) -> list[tuple[NDArray, NDArray]]:
+    """For each side k (corner k → corner k+1): parameters and cumulative metric lengths."""
+    _, corners = _corner_frames(field)
+    out = []
+    for k in range(4):
+        a, b = corners[k], corners[(k + 1) % 4]
+        _, cum = side_arclength(field, a, b, samples=256)
+        # enough cells for 64 per unit of metric length, for 1e-6 accuracy of positions
+        samples = int(min(max(256, 64 * cum[-1]), 2_000_000))
+        out.append(side_arclength(field, a, b, samples=samples))
+    return out
+
+
+def _at_distance(field: MetricField, tables, side: int, dist: NDArray, backwards: bool) -> NDArray:
+    """Points ``(n, 2)`` of side ``side`` at metric distances from its first (or last) corner."""
+    _, corners = _corner_frames(field)
+    s, cum = tables[side]
+    a, b = corners[side], corners[(side + 1) % 4]
+    t = np.interp(cum[-1] - dist if backwards else dist, cum, s)
+    return a[None, :] + t[:, None] * (b - a)[None, :]
+
+
+def _wedges(
+    field: MetricField, tables, target: float, min_dist: float, max_length: float
+) -> list[tuple[NDArray, NDArray] | None]:
+    """Staggered distances at each corner whose symmetric edges would exceed 1.4 × target.
+
+    :func:`wedge_distances` works in the metric of the corner; the cross edges
+    are then measured in the field (shortest parabolas, as the edges will be
+    curved) and the margin widened (:data:`WEDGE_MARGINS`) until none is
+    shorter than ``min_dist``.
+    """
+    need = corner_edge_lengths(field, target=target, min_dist=min_dist, max_length=np.inf)
+    theta = corner_angles(field)
+    out: list[tuple[NDArray, NDArray] | None] = [None] * 4
+    for k in np.flatnonzero(need > 1.4 * target):
+        for margin in WEDGE_MARGINS:
+            w = wedge_distances(
+                float(theta[k]),
+                target=target,
+                min_dist=min_dist,
+                max_length=max_length,
+                margin=margin,
+            )
+            if w is None:
+                continue
+            first = _at_distance(field, tables, int(k), w[0], backwards=False)
+            second = _at_distance(field, tables, int(k - 1) % 4, w[1], backwards=True)
+            # merged order a1, b1, a2, b2, ...: consecutive ones are on opposite sides
+            merged = np.empty((len(first) + len(second), 2))
+            merged[0::2], merged[1::2] = first, second
+            cross = shortest_parabola(field, merged[:-1], merged[1:]).length
+            if cross.min() >= min_dist:
+                out[k] = w
+                break
     return out
 
 
@@ -82,33 +225,62 @@ def discretize_box(
 
     The edges at a corner that is acute in the metric are lengthened so that
     the first vertices of the two sides are at least ``min_dist`` apart (see
-    :func:`corner_edge_lengths`); the rest of each side is split evenly.
+    :func:`corner_edge_lengths`); where that would take edges longer than
+    1.4 × target, the vertices near the corner are staggered between its two
+    sides instead (:func:`wedge_distances`). The rest of each side is split evenly.
     """
-    xmin, ymin, xmax, ymax = field.box
-    corners = np.array([[xmin, ymin], [xmax, ymin], [xmax, ymax], [xmin, ymax]])
+    _, corners = _corner_frames(field)
     at_corner = corner_edge_lengths(field, target=target, min_dist=min_dist, max_length=max_length)
+    tables = _side_tables(field)
+    wedges = _wedges(field, tables, target, min_dist, max_length)
     verts, mids, sides = [], [], []
     for k in range(4):
         a, b = corners[k], corners[(k + 1) % 4]
-        _, cum = side_arclength(field, a, b, samples=256)
-        # enough cells for 64 per unit of metric length, for 1e-6 accuracy of positions
-        samples = int(min(max(256, 64 * cum[-1]), 2_000_000))
-        s, cum = side_arclength(field, a, b, samples=samples)
+        s, cum = tables[k]
         total = cum[-1]
-        first, last = at_corner[k], at_corner[(k + 1) % 4]
-        rest = total - first - last
-        if (first == target and last == target) or rest < 0.5 * target:
-            n = max(1, round(total / target))
-            targets = np.linspace(0.0, total, n + 1)
-        else:
-            n = max(1, round(rest / target))
-            targets = np.concatenate([[0.0], first + np.linspace(0.0, rest, n + 1), [total]])
+        targets = _side_targets(
+            total, target, at_corner[k], at_corner[(k + 1) % 4], wedges[k], wedges[(k + 1) % 4]
+        )
         t = np.interp(targets, cum, s)
         tm = np.interp(0.5 * (targets[:-1] + targets[1:]), cum, s)
         verts.append(a[None, :] + t[:-1, None] * (b - a)[None, :])
         mids.append(a[None, :] + tm[:, None] * (b - a)[None, :])
         sides.append(np.full(len(t) - 1, k))
     return BoundaryMesh(np.concatenate(verts), np.concatenate(mids), np.concatenate(sides))
+
+
+def _side_targets(
+    total: float,
+    target: float,
+    first: float,
+    last: float,
+    wedge_a: tuple[NDArray, NDArray] | None,
+    wedge_b: tuple[NDArray, NDArray] | None,
+) -> NDArray:
+    """Metric distances ``(n + 1,)`` from the side's first corner of its vertices, both ends in.
+
+    A side leaves its first corner as that corner's first side and reaches
+    its second corner as that corner's second side (both counter-clockwise).
+    """
+    if wedge_a is None and wedge_b is None:
+        return _plain_targets(total, target, first, last)
+    head = wedge_a[0] if wedge_a is not None else np.array([first])
+    tail = total - wedge_b[1][::-1] if wedge_b is not None else np.array([total - last])
+    lo, hi = head[-1], tail[0]
+    if hi - lo < 0.7 * target:  # the two corners' vertices meet: no room for staggering
+        return _plain_targets(total, target, first, last)
+    n = max(1, round((hi - lo) / target))
+    return np.concatenate([[0.0], head, np.linspace(lo, hi, n + 1)[1:-1], tail, [total]])
+
+
+def _plain_targets(total: float, target: float, first: float, last: float) -> NDArray:
+    """The side split evenly, after edges of length ``first`` and ``last`` at its ends."""
+    rest = total - first - last
+    if (first == target and last == target) or rest < 0.5 * target:
+        n = max(1, round(total / target))
+        return np.linspace(0.0, total, n + 1)
+    n = max(1, round(rest / target))
+    return np.concatenate([[0.0], first + np.linspace(0.0, rest, n + 1), [total]])
 
 
 def halving_points(field: MetricField, a: NDArray, b: NDArray, *, cells: int = 64) -> NDArray:

@@ -110,20 +110,25 @@ def corner_quality_bound(theta: float) -> float:
     return math.sqrt(3) * math.sin(theta) / (2 - math.cos(theta))
 
 
-def test_constant_aniso_mesh_is_valid_and_its_worst_triangle_is_the_best_corner_possible():
+def test_constant_aniso_mesh_is_unit_and_its_corner_as_good_as_the_lengths_allow():
     fld = load_metric(METRICS / "constant_aniso.yaml")
     g = fld.tensor(np.array([[0.5, 0.5]]))[0]
     ex, ey = np.array([1.0, 0.0]), np.array([0.0, 1.0])
     theta = math.acos(ex @ g @ ey / math.sqrt((ex @ g @ ex) * (ey @ g @ ey)))
     assert math.degrees(theta) == pytest.approx(6.6, abs=0.05)  # corners (0, 0) and (1, 1)
-    bound = corner_quality_bound(theta)
+    # the best corner triangle with its three edges no shorter than 0.7: sides a = 0.7
+    # and b on the box sides, b solving the law of cosines for a cut of exactly 0.7
+    a = 0.7
+    b = a * math.cos(theta) + math.sqrt(0.49 - (a * math.sin(theta)) ** 2)
+    q_unit = math.sqrt(3) * a * b * math.sin(theta) / (a * a + b * b - a * b * math.cos(theta))
     mesh = pipeline.adapt(fld).mesh
     rep = mesh_report(fld, mesh)
     assert rep["valid"] and is_conforming(mesh)
-    assert rep["quality"]["min"] <= bound * (1 + 1e-4)  # a theorem: fails if (4) is wrong
-    assert rep["quality"]["min"] >= 0.9 * bound  # the mesh gets close to it
-    assert rep["quality"]["mean"] >= 0.85
+    assert rep["edge_length"]["min"] >= 0.7 and rep["edge_length"]["max"] <= 1.5
     assert rep["edge_length"]["in_range"] >= 0.98
+    assert rep["quality"]["min"] <= corner_quality_bound(theta) * (1 + 1e-4)  # a theorem
+    assert rep["quality"]["min"] >= 0.95 * q_unit  # the corner is as good as unit edges allow
+    assert rep["quality"]["mean"] >= 0.85
     # a constant metric has straight geodesics: every edge node is at its edge's midpoint
     pts = np.asarray(mesh.points)
     mid = (pts[mesh.edges[:, 0]] + pts[mesh.edges[:, 1]]) / 2
