@@ -9,12 +9,15 @@ than ``max_length`` is offered as a new point, longest edges first, after the
 metric circumcentres of the triangles whose circumradius exceeds
 max_length / 2 (Delaunay refinement, Chew 1989; in a Delaunay mesh whose
 circumradii are all below max_length / 2 no edge is longer than max_length),
-under the same rules as Algorithm 1's tentative points (inside, away from the boundary,
-never closer than ``min_dist`` to any point). Rounds repeat until no point is
+under the same rules as Algorithm 1's tentative points (inside, away from the boundary),
+but never closer than ``fill_dist`` (0.75, not ``min_dist``) to any point: a gap
+shorter than 1.5 is left to vertex relocation. Rounds repeat until no point is
 added.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,6 +61,7 @@ def fill_gaps(
 ) -> NDArray:
     """Points ``(n', 2)``: ``points`` ``(n, 2)`` followed by the gap-filling ones."""
     opt = options or SamplingOptions()
+    gap_opt = replace(opt, min_dist=opt.fill_dist)
     pts = np.asarray(points, dtype=float)
     index = PointIndex()
     index.add(pts)
@@ -85,7 +89,7 @@ def fill_gaps(
         by_radius = np.argsort(-radius[big], kind="stable")
         by_length = np.argsort(-par.length[long], kind="stable")
         cand = np.concatenate([centre[big][by_radius], par.mid[long][by_length]])
-        new = accept_candidates(field, index, cand, opt)
+        new = accept_candidates(field, index, cand, gap_opt)
         if len(new) == 0:
             break
         index.add(new)

@@ -46,14 +46,27 @@ class SamplingOptions:
 
     ``spacing``: target metric length of the parabola between a point and its
     child; ``min_dist``: no two points closer (shortest parabola) than this;
-    ``boundary_dist``: no interior point closer than this to a side (metric
-    length of the perpendicular segment); ``search``: Euclidean search radius
-    as a multiple of ``min_dist`` times the largest local size; ``max_points``
-    bounds the run.
+    ``fill_dist``: the same for the points that fill gaps
+    (:func:`curvimesh.fill.fill_gaps`); ``boundary_dist``: no interior point
+    closer than this to a side (metric length of the perpendicular segment);
+    ``search``: Euclidean search radius as a multiple of ``min_dist`` times
+    the largest local size; ``max_points`` bounds the run.
+
+    The spacing is 0.98, not 1: points shot along both principal directions
+    make, where the metric varies slowly, a grid of squares of side
+    ``spacing`` (unit squares in the metric), whose diagonals, √2 × spacing,
+    must be in the unit range [0.7, 1.4]; with a spacing of 1 they are 1.414,
+    just too long, and gap filling would put a point in every square (on a
+    wall boundary layer, 1.35 times the ideal triangle count instead of 0.95).
+    A gap point must be ``fill_dist`` = 0.75 from the others, so that only
+    gaps of 1.5 or more (the longest edge we accept) are filled: a point in
+    a gap between 1.4 and 1.5 would make edges of 0.7 to 0.75 where moving
+    the vertices (:mod:`curvimesh.smooth`) does better.
     """
 
-    spacing: float = 1.0
+    spacing: float = 0.98
     min_dist: float = 0.7
+    fill_dist: float = 0.75
     boundary_dist: float = 0.6
     search: float = 2.0
     length_fix: bool = True
