@@ -8,9 +8,10 @@ eq. (3)) the point p_j + (p_i − p_j) / L would make it unit if the metric were
 constant along it, and the vertex goes, by a relaxation factor, towards the
 average of these points over its edges (the "spring" relocation of
 Bossen & Heckbert 1996, in the metric). All vertices move at once (a Jacobi
-sweep); a move is undone when it would invert a triangle or bring an edge
-below ``min_dist``. Between sweeps the edges are flipped back to the
-Delaunay triangulation in the metric. Boundary vertices stay.
+sweep); a move is undone when it would invert a triangle, bring an edge
+below ``min_dist``, or make an edge longer than ``max_length`` and than it
+was. Between sweeps the edges are flipped back to the Delaunay triangulation
+in the metric. Boundary vertices stay.
 """
 
 from __future__ import annotations
@@ -56,14 +57,18 @@ def _undo_bad_moves(
     edges: NDArray,
     tris: NDArray,
     min_dist: float,
+    old_length: NDArray | None = None,
+    max_length: float = 1.4,
 ) -> NDArray:
     """The positions ``new`` ``(n, 2)`` with the bad moves of vertices ``moved`` undone.
 
     A moved vertex goes back to ``old`` when it is a corner of a triangle of
     ``tris`` that is inverted (signed area ≤ 0) or an end of an edge of
     ``edges`` that touches a moved vertex and whose shortest parabola is
-    shorter than ``min_dist``; undoing one vertex can only help its
-    neighbours, so this repeats until no move is undone. Each pass re-measures
+    shorter than ``min_dist`` or, given the edges' lengths ``old_length`` at
+    ``old``, longer than both ``max_length`` and its old length (a move never
+    makes a long edge, or a long edge longer). This repeats until no move is
+    undone (each pass undoes at least one, so it ends). Each pass re-measures
     only the triangles and edges at the vertices just undone: nothing else
     changes (an edge between two vertices that stay put is not checked).
     """
@@ -76,7 +81,7 @@ def _undo_bad_moves(
     bad_t = signed_areas(new, tris) <= 0
     short = np.zeros(len(edges), dtype=bool)
     touch = np.flatnonzero(is_moved[edges].any(axis=1))
-    _update_short(field, new, edges, touch, is_moved, short, min_dist)
+    _update_bad(field, new, edges, touch, is_moved, short, min_dist, old_length, max_length)
     while moved.size:
         bad_v = np.zeros(n, dtype=bool)
         bad_v[tris[bad_t].ravel()] = True
@@ -92,24 +97,31 @@ def _undo_bad_moves(
         at = np.flatnonzero(undone[tris].any(axis=1))
         bad_t[at] = signed_areas(new, tris[at]) <= 0
         at = np.flatnonzero(undone[edges].any(axis=1))
-        _update_short(field, new, edges, at, is_moved, short, min_dist)
+        _update_bad(field, new, edges, at, is_moved, short, min_dist, old_length, max_length)
     return new
 
 
-def _update_short(
+def _update_bad(
     field: MetricField,
     pts: NDArray,
     edges: NDArray,
     rows: NDArray,
     is_moved: NDArray,
-    short: NDArray,
+    bad: NDArray,
     min_dist: float,
+    old_length: NDArray | None,
+    max_length: float,
 ) -> None:
-    """Set ``short[rows]``: the edge touches a moved vertex and its parabola is below min_dist."""
-    short[rows] = False
+    """Set ``bad[rows]``: the edge touches a moved vertex and its parabola is shorter than
+    min_dist or (with ``old_length``) longer than both max_length and its old length."""
+    bad[rows] = False
     rows = rows[is_moved[edges[rows]].any(axis=1)]
     if rows.size:
-        short[rows] = edge_parabola_lengths(field, pts, edges[rows]) < min_dist
+        length = edge_parabola_lengths(field, pts, edges[rows])
+        wrong = length < min_dist
+        if old_length is not None:
+            wrong |= length > np.maximum(max_length, old_length[rows])
+        bad[rows] = wrong
 
 
 def relocate(
@@ -120,6 +132,7 @@ def relocate(
     relax: float = 0.5,
     power: float = 4.0,
     min_dist: float = 0.7,
+    max_length: float = 1.4,
 ) -> Mesh:
     """The P1 ``mesh`` after ``sweeps`` relocation sweeps (see the module docstring)."""
     pts = np.array(mesh.points, dtype=float)
@@ -146,7 +159,7 @@ def relocate(
         move = np.where(fixed[:, None] | (count[:, None] == 0), 0.0, relax * (avg - pts))
         new = pts + move
         moved = np.flatnonzero(np.abs(move).max(axis=1) > 0)
-        new = _undo_bad_moves(field, pts, new, moved, e, cur.corners, min_dist)
+        new = _undo_bad_moves(field, pts, new, moved, e, cur.corners, min_dist, length, max_length)
         pts = new
         cur = metric_delaunay(field, Mesh(pts, cur.corners, mesh.box))
     return cur

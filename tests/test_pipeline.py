@@ -223,15 +223,22 @@ def test_relocation_undo_matches_full_remeasuring():
     new = pts.copy()
     # random moves: some invert triangles or shorten edges, undoing takes several passes
     new[moved] += np.random.default_rng(5).normal(scale=0.03, size=(len(moved), 2))
-    got = _undo_bad_moves(fld, pts, new, moved, e, tris, 0.7)
+    before = edge_parabola_lengths(fld, pts, e)
+    # the random moves make many edges longer than 1.5: the long-edge rule undoes moves too
+    max_length = 1.5
+    got = _undo_bad_moves(fld, pts, new, moved, e, tris, 0.7, before, max_length)
     # the plain loop: everything re-measured on every pass
     ref = new.copy()
+    long_undone = False
     while moved.size:
         bad_t = signed_areas(ref, tris) <= 0
         touch = np.isin(e, moved).any(axis=1)
         short = np.zeros(len(e), dtype=bool)
         if touch.any():
-            short[touch] = edge_parabola_lengths(fld, ref, e[touch]) < 0.7
+            length = edge_parabola_lengths(fld, ref, e[touch])
+            long = length > np.maximum(max_length, before[touch])
+            long_undone |= bool(long.any())
+            short[touch] = (length < 0.7) | long
         bad_v = np.zeros(len(ref), dtype=bool)
         bad_v[tris[bad_t].ravel()] = True
         bad_v[e[short].ravel()] = True
@@ -242,6 +249,7 @@ def test_relocation_undo_matches_full_remeasuring():
         moved = np.setdiff1d(moved, undo)
     assert np.array_equal(got, ref)
     assert not np.array_equal(got, new) and not np.array_equal(got, pts)
+    assert long_undone
 
 
 def test_too_close_in_blocks_matches_one_block(monkeypatch):
