@@ -18,6 +18,7 @@ from curvimesh import swap as _swap
 from curvimesh.boundary import discretize_box
 from curvimesh.errors import InputError
 from curvimesh.fill import fill_gaps
+from curvimesh.insert import insert_points
 from curvimesh.mesh import Mesh
 from curvimesh.metric import UNIT_TRIANGLE_AREA, MetricField, density_integral
 from curvimesh.sampling import SamplingOptions, sample_points
@@ -46,6 +47,7 @@ class AdaptOptions:
     fill: bool = True
     straight: bool = False
     relocate: bool = True
+    insert: bool = True
     split: bool = True
 
 
@@ -104,27 +106,37 @@ def curve(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> 
 
 @dataclass(frozen=True)
 class SwapStage:
-    """The mesh after the swap stage, and its counts of swaps, splits and swap rounds."""
+    """The mesh after the swap stage, and its counts of swaps, insertions, splits and
+    swap rounds."""
 
     mesh: Mesh
     swaps: int
     splits: int
     rounds: int
+    inserted: int = 0
 
 
 def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> SwapStage:
     """Stage 4: curvilinear edge swaps driven by quality (4), then (unless
-    ``options.split`` is off) splits of the long curved edges and swaps again."""
+    ``options.insert`` is off) vertex insertions into the cavities of the long
+    curved edges (:mod:`curvimesh.insert`), (unless ``options.split`` is off)
+    splits of the long edges left at their nodes (:mod:`curvimesh.split`), and
+    swaps again when a vertex was added."""
     opt = options or AdaptOptions()
     res = _swap.swap(fld, mesh, max_rounds=opt.max_swap_rounds, straight=opt.straight)
-    mesh, swaps, rounds, splits = res.mesh, res.swaps, res.rounds, 0
-    if opt.split and not opt.straight:
+    mesh, swaps, rounds, splits, inserted = res.mesh, res.swaps, res.rounds, 0, 0
+    if opt.straight:
+        return SwapStage(mesh, swaps, splits, rounds)
+    if opt.insert:
+        ins = insert_points(fld, mesh, min_dist=opt.sampling.min_dist)
+        mesh, inserted = ins.mesh, ins.inserted
+    if opt.split:
         sp = split_long_edges(fld, mesh, min_dist=opt.sampling.min_dist)
-        splits = sp.splits
-        if splits:
-            res = _swap.swap(fld, sp.mesh, max_rounds=opt.max_swap_rounds)
-            mesh, swaps, rounds = res.mesh, swaps + res.swaps, rounds + res.rounds
-    return SwapStage(mesh, swaps, splits, rounds)
+        mesh, splits = sp.mesh, sp.splits
+    if inserted or splits:
+        res = _swap.swap(fld, mesh, max_rounds=opt.max_swap_rounds)
+        mesh, swaps, rounds = res.mesh, swaps + res.swaps, rounds + res.rounds
+    return SwapStage(mesh, swaps, splits, rounds, inserted)
 
 
 @dataclass(frozen=True)
@@ -161,7 +173,8 @@ def adapt(
     res = swap(fld, p2, opt)
     seconds["swap"] = time.perf_counter() - t
     progress(
-        f"swap: {res.swaps} swaps in {res.rounds} rounds, {res.splits} splits "
+        f"swap: {res.swaps} swaps in {res.rounds} rounds, {res.inserted} insertions, "
+        f"{res.splits} splits "
         f"({seconds['swap']:.1f} s)"
     )
     mesh, swaps = res.mesh, res.swaps

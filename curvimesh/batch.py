@@ -494,6 +494,7 @@ def run_batch(
             "seed": opt.seed,
             "fill": opt.fill,
             "relocate": opt.relocate,
+            "insert": opt.insert,
             "split": opt.split,
             "straight": opt.straight,
             "format": fmt,
@@ -602,7 +603,7 @@ def summary_markdown(result: BatchResult) -> str:
 
 
 def _options_text(opts: dict) -> str:
-    off = [f"--no-{k}" for k in ("fill", "relocate", "split") if not opts.get(k, True)]
+    off = [f"--no-{k}" for k in ("fill", "relocate", "insert", "split") if not opts.get(k, True)]
     if opts.get("straight"):
         off.append("--straight")
     return f"seed {opts.get('seed', 0)}, " + (" ".join(off) if off else "every stage on")

@@ -149,6 +149,7 @@ def _options(
     straight: bool = False,
     no_fill: bool = False,
     no_relocate: bool = False,
+    no_insert: bool = False,
     no_split: bool = False,
 ) -> pipeline.AdaptOptions:
     return pipeline.AdaptOptions(
@@ -157,14 +158,16 @@ def _options(
         straight=straight,
         fill=not no_fill,
         relocate=not no_relocate,
+        insert=not no_insert,
         split=not no_split,
     )
 
 
 def stage_flags(fn: Callable) -> Callable:
-    """--no-fill, --no-relocate, --no-split: the stages beyond the paper's method."""
+    """--no-fill, --no-relocate, --no-insert, --no-split: the stages beyond the paper's method."""
     for name, what in (
         ("--no-split", "No splits of long curved edges."),
+        ("--no-insert", "No vertex insertions at long curved edges."),
         ("--no-relocate", "No vertex relocation."),
         ("--no-fill", "No gap filling after Algorithm 1."),
     ):
@@ -320,16 +323,23 @@ def curve(ctx: Context, mesh_path, metric_path, output, fmt, straight) -> None:
 @metric_option()
 @output_option
 @straight_option
+@click.option("--no-insert", is_flag=True, help="No vertex insertions at long curved edges.")
 @click.option("--no-split", is_flag=True, help="No splits of long curved edges.")
 @command
-def swap(ctx: Context, mesh_path, metric_path, output, fmt, straight, no_split) -> None:
-    """Stage 4: curvilinear edge swaps driven by quality (4)."""
+def swap(ctx: Context, mesh_path, metric_path, output, fmt, straight, no_insert, no_split) -> None:
+    """Stage 4: curvilinear edge swaps driven by quality (4), then vertex insertions
+    and splits at the long edges, and swaps again."""
     fld = load_metric(metric_path)
     mesh = _require_triangles(_read(mesh_path, fld), mesh_path)
     if mesh.order != 2:
         raise InputError(f"{mesh_path}: swap needs a P2 (triangle6) mesh; run curve first")
-    res = pipeline.swap(fld, mesh, _options(straight=straight, no_split=no_split))
-    ctx.progress(f"swap: {res.swaps} swaps in {res.rounds} rounds, {res.splits} splits")
+    res = pipeline.swap(
+        fld, mesh, _options(straight=straight, no_insert=no_insert, no_split=no_split)
+    )
+    ctx.progress(
+        f"swap: {res.swaps} swaps in {res.rounds} rounds, {res.inserted} insertions, "
+        f"{res.splits} splits"
+    )
     write_mesh(output, res.mesh, fmt=fmt)
 
 
@@ -365,14 +375,15 @@ def adapt(
     straight,
     no_fill,
     no_relocate,
+    no_insert,
     no_split,
 ) -> None:
     """All stages: sample | triangulate | curve | swap, in one process.
 
     The stages beyond the paper's method (gap filling, vertex relocation,
-    edge splits) run by default; --no-fill, --no-relocate and --no-split turn
-    them off, so that the paper's method alone is `--no-fill --no-relocate
-    --no-split`.
+    vertex insertion, edge splits) run by default; --no-fill, --no-relocate,
+    --no-insert and --no-split turn them off, so that the paper's method
+    alone is `--no-fill --no-relocate --no-insert --no-split`.
     """
     fld = load_metric(metric_path)
     opt = _options(
@@ -381,6 +392,7 @@ def adapt(
         straight=straight,
         no_fill=no_fill,
         no_relocate=no_relocate,
+        no_insert=no_insert,
         no_split=no_split,
     )
     t0 = time.perf_counter()
@@ -536,6 +548,7 @@ def batch(
     straight,
     no_fill,
     no_relocate,
+    no_insert,
     no_split,
 ) -> None:
     """Adapt every metric file, write its mesh, report and pictures, and a summary.
@@ -549,7 +562,12 @@ def batch(
 
     gates = [parse_gate(text) for text in requires]
     opt = _options(
-        seed=seed, straight=straight, no_fill=no_fill, no_relocate=no_relocate, no_split=no_split
+        seed=seed,
+        straight=straight,
+        no_fill=no_fill,
+        no_relocate=no_relocate,
+        no_insert=no_insert,
+        no_split=no_split,
     )
     result = run_batch(
         metric_paths,

@@ -1,4 +1,4 @@
-"""bench/ablation.py: its shared stages give the meshes of four separate adapt runs,
+"""bench/ablation.py: its shared stages give the meshes of five separate adapt runs,
 and it rewrites only its own section of a README."""
 
 from __future__ import annotations
@@ -33,9 +33,15 @@ def test_each_row_is_the_mesh_of_adapt_with_those_stages(tmp_path):
     rows = ablation.ablate(str(path))["rows"]
     assert [r["stage"] for r in rows] == list(ablation.STAGES)
     fld = load_metric(path)
-    flags = [(False, False, False), (True, False, False), (True, True, False), (True, True, True)]
-    for row, (fill, relocate, split) in zip(rows, flags, strict=True):
-        opt = pipeline.AdaptOptions(fill=fill, relocate=relocate, split=split)
+    flags = [
+        (False, False, False, False),
+        (True, False, False, False),
+        (True, True, False, False),
+        (True, True, True, False),
+        (True, True, True, True),
+    ]
+    for row, (fill, relocate, insert, split) in zip(rows, flags, strict=True):
+        opt = pipeline.AdaptOptions(fill=fill, relocate=relocate, insert=insert, split=split)
         rep = mesh_report(fld, pipeline.adapt(fld, opt).mesh)
         assert row["vertices"] == rep["vertices"]
         assert row["triangles"] == rep["triangles"]

@@ -33,6 +33,7 @@ LAYERS = {
     "smooth": 7,
     "swap": 8,
     "split": 8,
+    "insert": 8,
     "adapt": 9,
     "batch": 10,
     "cli": 11,
