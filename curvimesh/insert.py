@@ -56,7 +56,7 @@ from numpy.typing import NDArray
 from curvimesh.bezier import p2_map, valid_exact
 from curvimesh.fill import metric_circumcentres
 from curvimesh.geodesic import parabola_points, shortest_parabola
-from curvimesh.mesh import Mesh
+from curvimesh.mesh import Mesh, rotate_triangles
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths, edge_lengths_fast, metric_areas, quality_from
 from curvimesh.sampling import search_halfwidths, too_close
@@ -91,13 +91,6 @@ class InsertResult:
 
     mesh: Mesh
     inserted: int
-
-
-def _rotated(tris: NDArray, k: NDArray) -> NDArray:
-    """Triangles ``(s, 6)`` renumbered so that local edge k comes first."""
-    r = np.arange(len(tris))
-    cols = [(k + i) % 3 for i in range(3)] + [3 + (k + i) % 3 for i in range(3)]
-    return np.column_stack([tris[r, c] for c in cols])
 
 
 def metric_fraction_params(
@@ -215,8 +208,8 @@ def _insert_round(
     t1, t2 = et[seeds, 0], et[seeds, 1]
     k1 = np.argmax(tri_edges[t1] == seeds[:, None], axis=1)
     k2 = np.argmax(tri_edges[t2] == seeds[:, None], axis=1)
-    r1 = _rotated(tris[t1], k1)  # (a, b, c, n_ab, n_bc, n_ca)
-    r2 = _rotated(tris[t2], k2)  # (b, a, d, n_ba, n_ad, n_db)
+    r1 = rotate_triangles(tris[t1], k1)  # (a, b, c, n_ab, n_bc, n_ca)
+    r2 = rotate_triangles(tris[t2], k2)  # (b, a, d, n_ba, n_ad, n_db)
     quad = np.column_stack([r1[:, 0], r2[:, 2], r1[:, 1], r1[:, 2]])  # a, d, b, c (CCW)
     # outer edges j = (q_j, q_j+1): owner triangle, local index, node
     owner = np.column_stack([t2, t2, t1, t1])
@@ -227,7 +220,9 @@ def _insert_round(
     has = nb >= 0
     nbs = np.where(has, nb, owner)
     kk = np.argmax(tri_edges[nbs] == oedge[..., None], axis=2)
-    rn = _rotated(tris[nbs.ravel()], kk.ravel()).reshape(ns, 4, 6)  # (w, u, x, n_wu, n_ux, n_xw)
+    rn = rotate_triangles(tris[nbs.ravel()], kk.ravel()).reshape(
+        ns, 4, 6
+    )  # (w, u, x, n_wu, n_ux, n_xw)
     xv = np.where(has, rn[..., 2], quad)
     targets = np.column_stack([quad, xv])  # (s, 8) spoke ends
     # the 12 star triangles' loop edges: node and length

@@ -220,6 +220,20 @@ def signed_areas(points: ArrayLike, tris: ArrayLike) -> NDArray[np.float64]:
     return 0.5 * (u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])
 
 
+def rotate_triangles(tris: NDArray, k: NDArray) -> NDArray[np.int64]:
+    """P2 triangles ``(s, 6)`` renumbered so that their local edge ``k`` ``(s,)`` comes first.
+
+    Corners (c₀, c₁, c₂) become (c_k, c_k+1, c_k+2) and the edge nodes follow
+    (node j sits on edge c_j → c_j+1), so the orientation is kept.
+
+    >>> rotate_triangles(np.array([[0, 1, 2, 3, 4, 5]]), np.array([1])).tolist()
+    [[1, 2, 0, 4, 5, 3]]
+    """
+    r = np.arange(len(tris))
+    cols = [(k + i) % 3 for i in range(3)] + [3 + (k + i) % 3 for i in range(3)]
+    return np.column_stack([tris[r, c] for c in cols])
+
+
 def is_conforming(mesh: Mesh) -> bool:
     """Whether ``mesh`` is a conforming triangulation.
 
