@@ -419,6 +419,23 @@ class MetricField:
 _ALL_TRUE = {4: (np.uint32, 0x01010101), 8: (np.uint64, 0x0101010101010101)}
 
 
+def smallest_eigenvalue(g: NDArray) -> NDArray:
+    """λ_min ``(n,)`` of symmetric 2×2 matrices ``(n, 2, 2)``, in closed form.
+
+    λ_max = (a + c)/2 + sqrt(((a − c)/2)² + b²) and λ_min = det / λ_max (the
+    product of the eigenvalues), which keeps its relative accuracy however
+    anisotropic g is, where (a + c)/2 − sqrt(…) would cancel. Several times
+    faster than :func:`numpy.linalg.eigvalsh` on many small matrices.
+
+    >>> float(smallest_eigenvalue(np.array([[[4.0, 0.0], [0.0, 1e-12]]]))[0])
+    1e-12
+    """
+    a, b, c = g[:, 0, 0], g[:, 0, 1], g[:, 1, 1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        top = 0.5 * (a + c) + np.hypot(0.5 * (a - c), b)
+        return (a * c - b * b) / top
+
+
 def _finite_rows(arr: NDArray) -> NDArray:
     """Whether all entries of each row of ``arr`` ``(n, 2, 2)`` or ``(n, 2, 2, 2)`` are finite.
 

@@ -36,7 +36,7 @@ from curvimesh.geodesic import (
     shortest_parabola,
     unit_velocity,
 )
-from curvimesh.metric import MetricField
+from curvimesh.metric import MetricField, smallest_eigenvalue
 from curvimesh.spatial import PointIndex, pairs_within_boxes
 
 
@@ -89,9 +89,9 @@ def search_halfwidths(field: MetricField, pts: NDArray, radius: float) -> NDArra
     the metric varies between two points (a tighter box, the bounding box of
     the local metric ball, misses neighbours across curved anisotropic layers).
     """
-    w = np.linalg.eigvalsh(field.tensor(pts, check=False))
+    w = smallest_eigenvalue(field.tensor(pts, check=False))
     with np.errstate(invalid="ignore", divide="ignore"):
-        hw = radius / np.sqrt(w[:, 0])
+        hw = radius / np.sqrt(w)
     hw[~np.isfinite(hw)] = 0.0
     return np.column_stack([hw, hw])
 
@@ -135,7 +135,7 @@ def _too_close_block(field: MetricField, a: NDArray, b: NDArray, min_dist: float
     mid = 0.5 * (a + b)
     nrm = bisector_normal(a, b)
     probes = np.concatenate([a, b, mid, mid + 0.5 * nrm, mid - 0.5 * nrm])
-    w = np.linalg.eigvalsh(field.tensor(probes, check=False))[:, 0].reshape(5, -1)
+    w = smallest_eigenvalue(field.tensor(probes, check=False)).reshape(5, -1)
     with np.errstate(invalid="ignore", divide="ignore"):
         h_max = 1.0 / np.sqrt(w.min(axis=0))
         lower = np.hypot(*(b - a).T) / h_max

@@ -228,3 +228,18 @@ def test_blocked_evaluation_and_spd_check_match_the_plain_ones(monkeypatch):
     d4[1] = 1.0
     assert metric._finite_rows(d4).tolist() == [False, True, False]
     assert metric._finite_rows(np.zeros((0, 2, 2))).shape == (0,)
+
+
+def test_smallest_eigenvalue_matches_lapack_to_relative_rounding_at_any_anisotropy():
+    from curvimesh.metric import smallest_eigenvalue
+
+    rng = np.random.default_rng(3)
+    theta = rng.uniform(0, np.pi, 2000)
+    lam = np.column_stack([10.0 ** rng.uniform(-8, 0, 2000), 10.0 ** rng.uniform(0, 8, 2000)])
+    c, s = np.cos(theta), np.sin(theta)
+    rot = np.stack([np.column_stack([c, -s]), np.column_stack([s, c])], axis=1)
+    g = rot @ (lam[:, :, None] * np.eye(2)) @ rot.transpose(0, 2, 1)
+    got = smallest_eigenvalue(g)
+    # the exact λ_min is lam[:, 0] up to the rounding of building g (≈ 1e-16 λ_max)
+    assert np.all(np.abs(got - lam[:, 0]) <= 1e-15 * lam[:, 1] + 1e-12 * lam[:, 0])
+    assert np.allclose(got, np.linalg.eigvalsh(g)[:, 0], rtol=1e-9, atol=1e-15 * lam[:, 1].max())
