@@ -189,33 +189,54 @@ def _wedges(
 
     :func:`wedge_distances` works in the metric of the corner; the cross edges
     are then measured in the field (shortest parabolas, as the edges will be
-    curved) and the margin widened (:data:`WEDGE_MARGINS`) until none is
-    shorter than ``min_dist``.
+    curved). Where the field makes some shorter than ``min_dist`` (it varies
+    over the few units the staggering spans), the staggering is designed again
+    for a narrower angle θ' = θ · r (r < 1 the shortfall of the shortest cross
+    edge, over the design's ℓ_min): cross edges grow about linearly with the
+    angle near a sharp corner, and the side edges are placed exactly in the
+    field, so only the cross edges move. The margin is widened
+    (:data:`WEDGE_MARGINS`) when that does not converge.
     """
     need = corner_edge_lengths(field, target=target, min_dist=min_dist, max_length=np.inf)
     theta = corner_angles(field)
     out: list[tuple[NDArray, NDArray] | None] = [None] * 4
     for k in np.flatnonzero(need > 1.4 * target):
-        for margin in WEDGE_MARGINS:
+        out[k] = _wedge(field, tables, int(k), float(theta[k]), target, min_dist, max_length)
+    return out
+
+
+#: Designs tried per margin, narrowing the angle after each one with short cross edges.
+WEDGE_REDESIGNS = 8
+
+
+def _wedge(
+    field: MetricField,
+    tables,
+    k: int,
+    theta: float,
+    target: float,
+    min_dist: float,
+    max_length: float,
+) -> tuple[NDArray, NDArray] | None:
+    """The staggering at corner ``k`` whose cross edges pass in the field (see :func:`_wedges`)."""
+    for margin in WEDGE_MARGINS:
+        angle = theta
+        for _ in range(WEDGE_REDESIGNS):
             w = wedge_distances(
-                float(theta[k]),
-                target=target,
-                min_dist=min_dist,
-                max_length=max_length,
-                margin=margin,
+                angle, target=target, min_dist=min_dist, max_length=max_length, margin=margin
             )
             if w is None:
-                continue
-            first = _at_distance(field, tables, int(k), w[0], backwards=False)
-            second = _at_distance(field, tables, int(k - 1) % 4, w[1], backwards=True)
+                break
+            first = _at_distance(field, tables, k, w[0], backwards=False)
+            second = _at_distance(field, tables, (k - 1) % 4, w[1], backwards=True)
             # merged order a1, b1, a2, b2, ...: consecutive ones are on opposite sides
             merged = np.empty((len(first) + len(second), 2))
             merged[0::2], merged[1::2] = first, second
-            cross = shortest_parabola(field, merged[:-1], merged[1:]).length
-            if cross.min() >= min_dist:
-                out[k] = w
-                break
-    return out
+            shortest = float(shortest_parabola(field, merged[:-1], merged[1:]).length.min())
+            if shortest >= min_dist:
+                return w
+            angle *= 0.98 * shortest / (min_dist * (1.0 + margin))
+    return None
 
 
 def discretize_box(
