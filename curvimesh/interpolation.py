@@ -155,48 +155,6 @@ def exponents(degree: int, norm: float) -> tuple[float, float]:
     return s / (2.0 * (s + 2.0)), -1.0 / (s + 2.0)
 
 
-# G = (g11, g12, g22) of the contraction G_il = Σ_jk T_ijk T_ljk, as weights of the
-# products coef_i coef_j (row-major 4×4) of the derivatives (a, b, c, d):
-# g11 = a² + 2b² + c², g12 = ab + 2bc + cd, g22 = b² + 2c² + d².
-_GRAM = np.zeros((3, 16))
-_GRAM[0, [0, 5, 10]] = 1.0, 2.0, 1.0
-_GRAM[1, [1, 6, 11]] = 1.0, 2.0, 1.0
-_GRAM[2, [5, 10, 15]] = 1.0, 2.0, 1.0
-
-# Coefficients of π(s e₁ + t e₂) = A s³ + 3B s²t + 3C st² + D t³, e₁ = (p, q),
-# e₂ = (−q, p): A = π(e₁), B = ∇π(e₁)·e₂/3, C = ∇π(e₂)·e₁/3, D = π(e₂), in the
-# order (A, D, B, C) of the linear program, as weights of the products
-# coef_j · mono_m (row-major 4×4) with the monomials (p³, p²q, pq², q³).
-_ROTATE = np.array(
-    [
-        [[1, 0, 0, 0], [0, 3, 0, 0], [0, 0, 3, 0], [0, 0, 0, 1]],  # A
-        [[0, 0, 0, -1], [0, 0, 3, 0], [0, -3, 0, 0], [1, 0, 0, 0]],  # D
-        [[0, -1, 0, 0], [1, 0, -2, 0], [0, 2, 0, -1], [0, 0, 1, 0]],  # B
-        [[0, 0, 1, 0], [0, -2, 0, 1], [1, 0, -2, 0], [0, 1, 0, 0]],  # C
-    ],
-    dtype=float,
-).reshape(4, 16)
-
-# The linear program of cubic_shape in v = (x_min, y_min, r_b, r_c): the six
-# candidate values of t = X − Y (four crossings, then the two ends, added apart)...
-_CANDIDATES = np.array(
-    [
-        [1.0, -1.0, 0.0, 0.0],
-        [1.5, 0.0, 0.0, -0.5],
-        [0.0, -1.5, 0.5, 0.0],
-        [0.0, 0.0, 1.0, -1.0],
-        [0.0, 0.0, 0.0, 0.0],
-        [0.0, 0.0, 0.0, 0.0],
-    ]
-)
-# ... and the four lower bounds of S = X + Y: offset · v + slope · t.
-_OFFSETS = np.array(
-    [[2.0, 0.0, 0.0, 0.0], [0.0, 2.0, 0.0, 0.0], [0.0, 0.0, 2 / 3, 0.0], [0.0, 0.0, 0.0, 2 / 3]]
-)
-_SLOPES = np.array([-1.0, 1.0, -1 / 3, 1 / 3])
-_LOG_WEIGHTS = np.array([[2 / 3], [2 / 3], [2.0], [2.0]])
-
-
 def _frame(g11: NDArray, g12: NDArray, g22: NDArray) -> tuple[NDArray, NDArray]:
     """Unit eigenvector (cos φ, sin φ) of the larger eigenvalue of [[g11, g12], [g12, g22]].
 
@@ -237,21 +195,41 @@ def cubic_shape(coef: NDArray, *, max_aspect: float) -> tuple[NDArray, NDArray, 
     >>> np.exp(-X / 2).round(6).tolist(), np.exp((X - Y) / 2).round(6).tolist()
     ([0.5, 1.0], [100.0, 1.0])
     """
-    n = coef.shape[1]
-    g11, g12, g22 = _GRAM @ (coef[:, None, :] * coef[None, :, :]).reshape(16, n)
+    a, b, c, d = coef
+    # G = Σ_jk T_ijk T_ljk of the derivative tensor T (T_111 = a, T_112 = b, ...)
+    g11 = a * a + 2.0 * b * b + c * c
+    g12 = a * b + 2.0 * b * c + c * d
+    g22 = b * b + 2.0 * c * c + d * d
     cos, sin = _frame(g11, g12, g22)
-    cc, ss = cos * cos, sin * sin
-    mono = np.stack([cc * cos, cc * sin, cos * ss, ss * sin])
-    rotated = _ROTATE @ (coef[:, None, :] * mono[None, :, :]).reshape(16, n)
-    v = np.log(np.maximum(np.abs(rotated), _TINY)) * _LOG_WEIGHTS
+    m0, m1 = cos * cos * cos, cos * cos * sin  # the monomials p³, p²q, pq², q³ of e₁ = (p, q)
+    m2, m3 = cos * sin * sin, sin * sin * sin
+    # |A|, |D|, |B|, |C| in the frame, e₂ = (−q, p): A = π(e₁), D = π(e₂),
+    # B = ∇π(e₁)·e₂ / 3, C = ∇π(e₂)·e₁ / 3, then their logs (the LP's right-hand sides)
+    v = np.empty((4, len(a)))
+    v[0] = a * m0 + 3.0 * (b * m1 + c * m2) + d * m3
+    v[1] = d * m0 - a * m3 + 3.0 * (b * m2 - c * m1)
+    v[2] = b * (m0 - 2.0 * m2) + c * (2.0 * m1 - m3) + d * m2 - a * m1
+    v[3] = c * (m0 - 2.0 * m2) + b * (m3 - 2.0 * m1) + a * m2 + d * m1
+    np.abs(v, out=v)
+    np.maximum(v, _TINY, out=v)
+    np.log(v, out=v)
+    # constraints X >= va, Y >= vd, 2X + Y >= vb, X + 2Y >= vc
+    va, vd, vb, vc = (2.0 / 3.0) * v[0], (2.0 / 3.0) * v[1], 2.0 * v[2], 2.0 * v[3]
+    # in t = X − Y: S >= 2va − t, 2vd + t, (2/3)vb − t/3, (2/3)vc + t/3. Candidate
+    # t: the four crossings of a decreasing and an increasing bound, and the ends
     cap = 2.0 * math.log(max_aspect)
-    cand = _CANDIDATES @ v
-    cand[4], cand[5] = -cap, cap
-    np.clip(cand, -cap, cap, out=cand)
-    bounds = (_OFFSETS @ v)[:, None, :] + _SLOPES[:, None, None] * cand[None, :, :]
-    s_all = bounds.max(axis=0)
-    best = (s_all.argmin(axis=0), np.arange(n))
-    s, t = s_all[best], cand[best]
+    t = np.empty((6, len(a)))
+    t[0] = va - vd
+    t[1] = 1.5 * va - 0.5 * vc
+    t[2] = 0.5 * vb - 1.5 * vd
+    t[3] = vb - vc
+    t[4], t[5] = -cap, cap
+    np.clip(t, -cap, cap, out=t)
+    s = np.maximum(2.0 * va - t, 2.0 * vd + t)
+    np.maximum(s, (2.0 / 3.0) * vb - t / 3.0, out=s)
+    np.maximum(s, (2.0 / 3.0) * vc + t / 3.0, out=s)
+    best = (s.argmin(axis=0), np.arange(len(a)))
+    s, t = s[best], t[best]
     return cos, sin, 0.5 * (s + t), 0.5 * (s - t)
 
 
