@@ -496,6 +496,8 @@ def run_batch(
             "relocate": opt.relocate,
             "insert": opt.insert,
             "split": opt.split,
+            "recurve": opt.recurve,
+            "length_swaps": opt.length_swaps,
             "straight": opt.straight,
             "format": fmt,
             "jobs": jobs,
@@ -603,7 +605,11 @@ def summary_markdown(result: BatchResult) -> str:
 
 
 def _options_text(opts: dict) -> str:
-    off = [f"--no-{k}" for k in ("fill", "relocate", "insert", "split") if not opts.get(k, True)]
+    off = [
+        f"--no-{k.replace('_', '-')}"
+        for k in ("fill", "relocate", "insert", "split", "recurve", "length_swaps")
+        if not opts.get(k, True)
+    ]
     if opts.get("straight"):
         off.append("--straight")
     return f"seed {opts.get('seed', 0)}, " + (" ".join(off) if off else "every stage on")

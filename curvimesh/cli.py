@@ -151,6 +151,8 @@ def _options(
     no_relocate: bool = False,
     no_insert: bool = False,
     no_split: bool = False,
+    no_recurve: bool = False,
+    no_length_swaps: bool = False,
 ) -> pipeline.AdaptOptions:
     return pipeline.AdaptOptions(
         seed=seed,
@@ -160,12 +162,21 @@ def _options(
         relocate=not no_relocate,
         insert=not no_insert,
         split=not no_split,
+        recurve=not no_recurve,
+        length_swaps=not no_length_swaps,
     )
 
 
+RECURVE_HELP = "No re-curving of edge nodes towards their shortest parabolas."
+LENGTH_SWAPS_HELP = "No swaps for edge lengths (swaps for quality (4) only)."
+
+
 def stage_flags(fn: Callable) -> Callable:
-    """--no-fill, --no-relocate, --no-insert, --no-split: the stages beyond the paper's method."""
+    """--no-fill, --no-relocate, --no-insert, --no-split, --no-recurve, --no-length-swaps:
+    the stages beyond the paper's method."""
     for name, what in (
+        ("--no-length-swaps", LENGTH_SWAPS_HELP),
+        ("--no-recurve", RECURVE_HELP),
         ("--no-split", "No splits of long curved edges."),
         ("--no-insert", "No vertex insertions at long curved edges."),
         ("--no-relocate", "No vertex relocation."),
@@ -325,20 +336,39 @@ def curve(ctx: Context, mesh_path, metric_path, output, fmt, straight) -> None:
 @straight_option
 @click.option("--no-insert", is_flag=True, help="No vertex insertions at long curved edges.")
 @click.option("--no-split", is_flag=True, help="No splits of long curved edges.")
+@click.option("--no-recurve", is_flag=True, help=RECURVE_HELP)
+@click.option("--no-length-swaps", is_flag=True, help=LENGTH_SWAPS_HELP)
 @command
-def swap(ctx: Context, mesh_path, metric_path, output, fmt, straight, no_insert, no_split) -> None:
-    """Stage 4: curvilinear edge swaps driven by quality (4), then vertex insertions
-    and splits at the long edges, and swaps again."""
+def swap(
+    ctx: Context,
+    mesh_path,
+    metric_path,
+    output,
+    fmt,
+    straight,
+    no_insert,
+    no_split,
+    no_recurve,
+    no_length_swaps,
+) -> None:
+    """Stage 4: curvilinear edge swaps driven by quality (4) and edge lengths,
+    re-curving, vertex insertions and splits at the long edges, and swaps and
+    re-curving again."""
     fld = load_metric(metric_path)
     mesh = _require_triangles(_read(mesh_path, fld), mesh_path)
     if mesh.order != 2:
         raise InputError(f"{mesh_path}: swap needs a P2 (triangle6) mesh; run curve first")
-    res = pipeline.swap(
-        fld, mesh, _options(straight=straight, no_insert=no_insert, no_split=no_split)
+    opt = _options(
+        straight=straight,
+        no_insert=no_insert,
+        no_split=no_split,
+        no_recurve=no_recurve,
+        no_length_swaps=no_length_swaps,
     )
+    res = pipeline.swap(fld, mesh, opt)
     ctx.progress(
         f"swap: {res.swaps} swaps in {res.rounds} rounds, {res.inserted} insertions, "
-        f"{res.splits} splits"
+        f"{res.splits} splits, {res.recurved} re-curved nodes"
     )
     write_mesh(output, res.mesh, fmt=fmt)
 
@@ -377,13 +407,16 @@ def adapt(
     no_relocate,
     no_insert,
     no_split,
+    no_recurve,
+    no_length_swaps,
 ) -> None:
     """All stages: sample | triangulate | curve | swap, in one process.
 
     The stages beyond the paper's method (gap filling, vertex relocation,
-    vertex insertion, edge splits) run by default; --no-fill, --no-relocate,
-    --no-insert and --no-split turn them off, so that the paper's method
-    alone is `--no-fill --no-relocate --no-insert --no-split`.
+    vertex insertion, edge splits, re-curving, swaps for lengths) run by
+    default; --no-fill, --no-relocate, --no-insert, --no-split, --no-recurve
+    and --no-length-swaps turn them off, so that the paper's method alone is
+    `--no-fill --no-relocate --no-insert --no-split --no-recurve --no-length-swaps`.
     """
     fld = load_metric(metric_path)
     opt = _options(
@@ -394,6 +427,8 @@ def adapt(
         no_relocate=no_relocate,
         no_insert=no_insert,
         no_split=no_split,
+        no_recurve=no_recurve,
+        no_length_swaps=no_length_swaps,
     )
     t0 = time.perf_counter()
     res = pipeline.adapt(fld, opt, progress=ctx.progress)
@@ -550,6 +585,8 @@ def batch(
     no_relocate,
     no_insert,
     no_split,
+    no_recurve,
+    no_length_swaps,
 ) -> None:
     """Adapt every metric file, write its mesh, report and pictures, and a summary.
 
@@ -568,6 +605,8 @@ def batch(
         no_relocate=no_relocate,
         no_insert=no_insert,
         no_split=no_split,
+        no_recurve=no_recurve,
+        no_length_swaps=no_length_swaps,
     )
     result = run_batch(
         metric_paths,

@@ -17,6 +17,24 @@ The swap is made when both new triangles are valid (Jacobian positive
 everywhere, decided exactly from its Bezier coefficients) and it raises the
 worse quality of the pair: min(q(t₁'), q(t₂')) > min(q(t₁), q(t₂)).
 
+With the rule for lengths (beyond the paper), the edge lengths count too.
+With q = min(q(t₁), q(t₂)) and q' = min(q(t₁'), q(t₂')), the floor
+F = max(0.3, worst quality of the mesh), and β(L) = max(0, L/1.4 − 1,
+0.7/L − 1) how far a length is out of [0.7, 1.4], the swap is made when
+
+1. min(q', F) > min(q, F): a pair worse than the floor gets better; or
+2. min(q', F) ≥ min(q, F) and β(L_cd) < β(L_ab): the new edge is nearer
+   the range, and the pair stays above min(q, F); or
+3. min(q', F) ≥ min(q, F), β(L_cd) ≤ β(L_ab) and q' > q: the quality
+   rule, unless it puts the new edge farther out of the range.
+
+Cases are taken in this order of priority. The worst quality of the mesh
+never goes down (it is ≤ F and no pair falls below min(q, F)). No swap is
+undone by the next: undoing a case 2 or 3 swap would need min(q, F) >
+min(q', F) (case 1) or the old edge no farther out of the range than the
+new one with a better pair (cases 2, 3), against what the swap required;
+``max_rounds`` guards against longer cycles.
+
 Swaps are made in rounds: every candidate is evaluated at once, the
 improving ones are taken greedily by decreasing gain so that no two touch
 the same triangle, and they are applied together. A candidate's outcome
@@ -99,6 +117,52 @@ def _nodes(pts: NDArray, tri: NDArray, mids: NDArray) -> NDArray:
     return np.concatenate([pts[tri], mids], axis=1)
 
 
+def out_of_range(length: NDArray, length_range: tuple[float, float]) -> NDArray:
+    """How far lengths ``(k,)`` are out of [lo, hi], relatively: max(0, L/hi − 1, lo/L − 1).
+
+    >>> out_of_range(np.array([0.35, 1.0, 2.8]), (0.7, 1.4)).tolist()
+    [1.0, 0.0, 1.0]
+    """
+    lo, hi = length_range
+    with np.errstate(divide="ignore"):
+        return np.maximum(0.0, np.maximum(length / hi - 1.0, lo / length - 1.0))
+
+
+def length_rule_gain(
+    q_old: NDArray,
+    q_new: NDArray,
+    l_old: NDArray,
+    l_new: NDArray,
+    *,
+    floor: float,
+    length_range: tuple[float, float] = (0.7, 1.4),
+    min_gain: float = 1e-6,
+) -> NDArray:
+    """Priorities ``(k,)`` of swaps under the rule for lengths (module docstring).
+
+    ``q_old``, ``q_new``: the worse quality of the pair before and after;
+    ``l_old``, ``l_new``: the lengths of the old and the new edge. A swap is
+    taken when its priority exceeds ``min_gain``: 20 + the gain of the pair's
+    quality clipped at ``floor`` (case 1), 10 + the gain of :func:`out_of_range`
+    (case 2), the gain of quality (case 3), −inf otherwise.
+
+    >>> length_rule_gain(np.array([0.8, 0.8, 0.2]), np.array([0.5, 0.9, 0.25]),
+    ...                  np.array([1.5, 1.5, 1.0]), np.array([1.0, 1.6, 1.0]), floor=0.3)
+    array([10.07142857,        -inf, 20.05      ])
+    """
+    f_old, f_new = np.minimum(q_old, floor), np.minimum(q_new, floor)
+    b_old, b_new = out_of_range(l_old, length_range), out_of_range(l_new, length_range)
+    kept = f_new >= f_old
+    gain = np.full(len(q_old), -np.inf)
+    up = f_new - f_old > min_gain
+    gain[up] = 20.0 + (f_new - f_old)[up]
+    nearer = ~up & kept & (b_old - b_new > min_gain)
+    gain[nearer] = 10.0 + np.minimum(b_old - b_new, 5.0)[nearer]
+    rest = ~up & ~nearer & kept & (b_new <= b_old)
+    gain[rest] = (q_new - q_old)[rest]
+    return gain
+
+
 def swap(
     field: MetricField,
     mesh: Mesh,
@@ -107,12 +171,17 @@ def swap(
     min_gain: float = 1e-6,
     area_order: int = 4,
     straight: bool = False,
+    length_rule: bool = False,
+    min_quality: float = 0.3,
+    length_range: tuple[float, float] = (0.7, 1.4),
 ) -> SwapResult:
     """Curvilinear edge swaps until no swap improves (see the module docstring).
 
     ``mesh`` is a valid P2 mesh; its edge nodes are kept for the edges that
     stay. Returns a valid P2 mesh on the same corners. With ``straight`` the
     new edges are straight (the classical swap of a straight-sided mesh).
+    With ``length_rule``, swaps are decided by :func:`length_rule_gain`, with
+    ``length_range`` and the floor max(``min_quality``, worst quality of the mesh).
     """
     p1 = p1_of(mesh)
     pts = np.asarray(p1.points)
@@ -209,7 +278,19 @@ def swap(
             q2 = quality_from(
                 metric_areas(field, n2, order=area_order), np.column_stack([l_db, l_bc, l_cd])
             )
-            gain[v] = np.minimum(q1, q2) - np.minimum(q[t1[v]], q[t2[v]])
+            q_new, q_old = np.minimum(q1, q2), np.minimum(q[t1[v]], q[t2[v]])
+            gain[v] = q_new - q_old
+            if length_rule:
+                l_ab = store.length[store.find(store.key(a[v], b[v]))[0]]
+                gain[v] = length_rule_gain(
+                    q_old,
+                    q_new,
+                    l_ab,
+                    l_cd,
+                    floor=max(min_quality, float(q.min())),
+                    length_range=length_range,
+                    min_gain=min_gain,
+                )
             new_len = np.zeros(len(a))
             new_len[v] = l_cd
         good = np.flatnonzero(gain > min_gain)

@@ -178,22 +178,33 @@ def test_check_metric_prints_the_ideal_count():
 
 @pytest.mark.parametrize(
     "flags",
-    [("--no-insert",), ("--no-fill", "--no-relocate", "--no-insert", "--no-split")],
+    [
+        ("--no-insert",),
+        ("--no-recurve",),
+        ("--no-length-swaps",),
+        (
+            "--no-fill",
+            "--no-relocate",
+            "--no-insert",
+            "--no-split",
+            "--no-recurve",
+            "--no-length-swaps",
+        ),
+    ],
 )
 def test_stage_flags_give_the_library_mesh_with_those_stages_off(workdir, flags):
     from curvimesh import adapt as pipeline
     from curvimesh.io import read_mesh
     from curvimesh.metric import load_metric
 
-    out = workdir / f"flags{len(flags)}.msh"
+    out = workdir / f"flags{''.join(flags)}.msh"
     r = CliRunner().invoke(
         main, ["adapt", "--metric", str(workdir / "m.yaml"), "-o", str(out), *flags]
     )
     assert r.exit_code == 0, r.output
-    off = {f.removeprefix("--no-") for f in flags}
-    opt = pipeline.AdaptOptions(
-        **{k: k not in off for k in ("fill", "relocate", "insert", "split")}
-    )
+    off = {f.removeprefix("--no-").replace("-", "_") for f in flags}
+    stages = ("fill", "relocate", "insert", "split", "recurve", "length_swaps")
+    opt = pipeline.AdaptOptions(**{k: k not in off for k in stages})
     want = pipeline.adapt(load_metric(workdir / "m.yaml"), opt).mesh
     got = read_mesh(out)
     np.testing.assert_allclose(got.points, want.points, rtol=0, atol=1e-12)

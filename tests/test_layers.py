@@ -34,6 +34,7 @@ LAYERS = {
     "swap": 8,
     "split": 8,
     "insert": 8,
+    "recurve": 8,
     "adapt": 9,
     "batch": 10,
     "cli": 11,

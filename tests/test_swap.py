@@ -1,0 +1,79 @@
+"""Swaps for edge lengths (:func:`curvimesh.swap.swap` with ``length_rule``), on quads
+whose lengths and qualities are known by hand in the Euclidean metric."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from curvimesh.mesh import Mesh, to_p2_straight
+from curvimesh.metric import load_metric_text
+from curvimesh.quality import edge_lengths, metric_areas, quality_from
+from curvimesh.swap import swap
+
+EUCLID = """
+domain: {box: [[-1, -1], [2, 1]]}
+metric:
+  isotropic: 1
+"""
+
+
+#: A lone triangle of quality 0.371 (by hand: 4√3 · 0.0075 / 0.14), away from the kite.
+LONE = [[1.6, 0.6], [1.9, 0.6], [1.75, 0.65]]
+
+
+def _kite(xc: float, *, lone: bool = True) -> Mesh:
+    """Triangles (a, b, c), (b, a, d): a = (0, 0), b = (1.45, 0), c, d = (xc, ±0.5),
+    and (unless ``lone`` is off) the triangle :data:`LONE`, the worst of the mesh."""
+    pts = [[0.0, 0.0], [1.45, 0.0], [xc, 0.5], [xc, -0.5], *(LONE if lone else [])]
+    tris = [[0, 1, 2], [1, 0, 3], *([[4, 5, 6]] if lone else [])]
+    return to_p2_straight(Mesh(pts, tris, (-1, -1, 2, 1)))
+
+
+def _q(ax, ay, bx, by, cx, cy) -> float:
+    """Equation (4) for a straight triangle in the Euclidean metric, by hand."""
+    area = 0.5 * ((bx - ax) * (cy - ay) - (by - ay) * (cx - ax))
+    l2 = (bx - ax) ** 2 + (by - ay) ** 2 + (cx - bx) ** 2 + (cy - by) ** 2
+    l2 += (ax - cx) ** 2 + (ay - cy) ** 2
+    return 4 * math.sqrt(3) * area / l2
+
+
+def test_the_rule_for_lengths_takes_a_swap_that_the_quality_rule_refuses():
+    fld = load_metric_text(EUCLID)
+    mesh = _kite(0.3)
+    # by hand: the diagonal a-b is 1.45 long (out of [0.7, 1.4]), c-d is 1.0 long;
+    # the swap lowers the worse quality of the pair from 0.6255 to 0.6186
+    q_old = min(_q(0, 0, 1.45, 0, 0.3, 0.5), _q(1.45, 0, 0, 0, 0.3, -0.5))
+    q_new = min(_q(0, 0, 0.3, -0.5, 0.3, 0.5), _q(0.3, -0.5, 1.45, 0, 0.3, 0.5))
+    assert q_old == pytest.approx(0.6255, abs=1e-4) and q_new == pytest.approx(0.6186, abs=1e-4)
+    assert _q(*LONE[0], *LONE[1], *LONE[2]) == pytest.approx(0.371, abs=1e-3)
+    assert swap(fld, mesh).swaps == 0
+    res = swap(fld, mesh, length_rule=True)
+    assert res.swaps == 1
+    out = res.mesh
+    pts = out.points
+    lengths = edge_lengths(fld, pts, out.edges, out.edge_mid)
+    assert lengths.max() == pytest.approx(math.hypot(1.15, 0.5), rel=1e-9)  # b-c, 1.254
+    cd = [k for k, (i, j) in enumerate(out.edges.tolist()) if (i, j) == (2, 3)]  # c-d
+    assert len(cd) == 1 and lengths[cd[0]] == pytest.approx(1.0, rel=1e-9)
+    assert not any((i, j) == (0, 1) for i, j in out.edges.tolist())  # a-b is gone
+    q = quality_from(metric_areas(fld, pts[out.triangles]), lengths[out.tri_edges])
+    assert q[:2].min() == pytest.approx(q_new, rel=1e-9)
+
+
+def test_the_rule_for_lengths_keeps_the_quality_floor():
+    fld = load_metric_text(EUCLID)
+    mesh = _kite(0.05)
+    # by hand: the swap would make c-d 1.0 long but a triangle of quality 0.115 < 0.3
+    assert _q(0, 0, 0.05, -0.5, 0.05, 0.5) == pytest.approx(0.115, abs=1e-3)
+    assert swap(fld, mesh, length_rule=True).swaps == 0
+
+
+def test_the_rule_for_lengths_never_lowers_the_worst_quality():
+    fld = load_metric_text(EUCLID)
+    # the floor is max(min_quality, the worst quality of the mesh), and q_new = 0.6186
+    assert swap(fld, _kite(0.3), length_rule=True, min_quality=0.61).swaps == 1
+    assert swap(fld, _kite(0.3), length_rule=True, min_quality=0.62).swaps == 0
+    # without the lone triangle the kite's pair is the worst of the mesh, 0.6255
+    assert swap(fld, _kite(0.3, lone=False), length_rule=True).swaps == 0
