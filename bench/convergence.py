@@ -7,15 +7,18 @@ For each test function f on [0, 1]² and each target vertex count N:
 * ``straight``: curvimesh's mesh for the ``interpolation`` metric of f
   (degree 2, L2 norm, N vertices) with every edge kept straight
   (``AdaptOptions(straight=True)``, the CLI's ``adapt --straight``);
-* ``curved``: curvimesh's curved unit mesh for the same metric;
-* ``straightened``: the curved mesh with its edge nodes moved back to the
+* ``geodesic``: curvimesh's curved unit mesh for the same metric, its edges
+  on the metric's shortest parabolas (``adapt --no-fit``);
+* ``curved``: the default ``adapt``: the ``geodesic`` mesh with its edge nodes
+  then fitted to f (:mod:`curvimesh.fit`), the same vertices and triangles;
+* ``straightened``: the geodesic mesh with its edge nodes moved back to the
   edge midpoints: the same vertices and triangles, straight edges. Against
-  ``curved`` it isolates the effect of the curvature itself; against
+  ``geodesic`` it isolates the effect of the curvature itself; against
   ``straight``, that of the connectivity the curved swaps chose.
 
-The two adapted meshes share their sampling and triangulation, which do not
+The adapted meshes share their sampling and triangulation, which do not
 depend on ``straight`` (same seed), so they differ only by the curving and
-swapping stages. Errors are those of the isoparametric P2 Lagrange
+swapping stages (and the fitting). Errors are those of the isoparametric P2 Lagrange
 interpolant (:func:`curvimesh.interpolation_error.interpolation_error`); the
 plot is error against the *actual* vertex count, and the slopes are fitted by
 least squares in log-log (the optimal rate for P2 in 2D is N^(−3/2)).
@@ -28,6 +31,7 @@ interrupted study keeps its results), ``convergence.png`` and
     python bench/convergence.py                 # 500 .. 2800 vertices
     python bench/convergence.py --full          # and 4000 .. 50 000 (many hours)
     python bench/convergence.py --vertices 500 1000 --functions f1
+    python bench/convergence.py --keep-straight  # recompute the curved series only
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ import numpy as np
 
 from curvimesh import adapt as pipeline
 from curvimesh.bezier import valid_exact
+from curvimesh.fit import fit_nodes
 from curvimesh.interpolation import compile_function
 from curvimesh.interpolation_error import interpolation_error
 from curvimesh.mesh import Mesh, to_p2_straight
@@ -64,7 +69,10 @@ DESCRIPTIONS = {
 DEFAULT_VERTICES = (500, 700, 1000, 1400, 2000, 2800)
 FULL_VERTICES = (*DEFAULT_VERTICES, 4000, 5600, 8000, 16000, 32000, 50000)
 SIZES = (1e-4, 0.5)
-SERIES = ("uniform", "straight", "curved", "straightened")
+SERIES = ("uniform", "straight", "geodesic", "curved", "straightened")
+
+#: The series that do not depend on the curving stages, kept by ``--keep-straight``.
+STRAIGHT_SERIES = ("uniform", "straight")
 
 
 def metric_text(function: str, vertices: int) -> str:
@@ -96,8 +104,9 @@ def run_uniform(name: str, vertices: int) -> list[dict]:
     return [_record(name, "uniform", vertices, mesh, err, time.perf_counter() - t0)]
 
 
-def run_adapted(name: str, vertices: int, seed: int = 0) -> list[dict]:
-    """Adapt to the metric of ``name`` with ``vertices``; both straight and curved."""
+def run_adapted(name: str, vertices: int, seed: int = 0, straight: bool = True) -> list[dict]:
+    """Adapt to the metric of ``name`` with ``vertices``: straight (unless not
+    ``straight``), geodesic, curved (fitted) and straightened."""
     f = compile_function(FUNCTIONS[name])
     t0 = time.perf_counter()
     fld = load_metric_text(metric_text(FUNCTIONS[name], vertices), source=f"{name}.yaml")
@@ -106,15 +115,31 @@ def run_adapted(name: str, vertices: int, seed: int = 0) -> list[dict]:
     p1 = pipeline.triangulate(cloud, fld)
     shared = time.perf_counter() - t0
     out = []
-    for series, straight in (("straight", True), ("curved", False)):
+    runs = (("straight", True), ("geodesic", False)) if straight else (("geodesic", False),)
+    for series, flat in runs:
         t1 = time.perf_counter()
-        opt = pipeline.AdaptOptions(seed=seed, straight=straight)
+        opt = pipeline.AdaptOptions(seed=seed, straight=flat, fit=False)
         mesh = pipeline.swap(fld, pipeline.curve(fld, p1, opt), opt).mesh
-        err = interpolation_error(f, mesh)
-        out.append(_record(name, series, vertices, mesh, err, shared + time.perf_counter() - t1))
+        seconds = shared + time.perf_counter() - t1
+        out.append(_record(name, series, vertices, mesh, interpolation_error(f, mesh), seconds))
+    t1 = time.perf_counter()
+    fitted = fit_nodes(fld.error_function, mesh).mesh  # what the default adapt does last
+    seconds += time.perf_counter() - t1
+    out.append(_record(name, "curved", vertices, fitted, interpolation_error(f, fitted), seconds))
     flat = to_p2_straight(mesh)
     out.append(_record(name, "straightened", vertices, flat, interpolation_error(f, flat), 0.0))
     return out
+
+
+def vertices_for_error(rows: list[dict], error: float, key: str = "l2") -> float:
+    """Vertices a series needs for ``error``: log-log interpolation between its runs
+    (NaN outside their range)."""
+    n = np.log([r["vertices"] for r in rows])
+    e = np.log([r[key] for r in rows])
+    order = np.argsort(e)
+    if not (e.min() <= math.log(error) <= e.max()):
+        return math.nan
+    return float(np.exp(np.interp(math.log(error), e[order], n[order])))
 
 
 def _record(name: str, series: str, target: int, mesh: Mesh, err, seconds: float) -> dict:
@@ -175,22 +200,33 @@ def write_table(results: list[dict], path: Path, wall: float | None, jobs: int) 
             )
     lines += [
         "",
-        "Curved against straight-sided, L2 error ratios at each target N (< 1: the curved",
-        "mesh wins). *curved / straight* compares the two adapted meshes; *curved /",
-        "straightened* isolates the curvature (same vertices and triangles, edge nodes",
-        "moved back to the midpoints); *straightened / straight* isolates the connectivity",
-        "chosen by the curved swaps. A straightened mesh may hold folded triangles (the",
-        "paper's figure 8; *all valid* says so above): its error is then integrated with |J|.",
+        "Curved against straight-sided, L2 error ratios at each target N (< 1: the first",
+        "mesh wins). *curved / straight* compares the default curved mesh (edge nodes fitted",
+        "to f) with the adapted straight-sided one; *geodesic / straight*, the unit mesh",
+        "curved along the metric's geodesics; *geodesic / straightened* isolates that",
+        "curvature (same vertices and triangles, edge nodes moved back to the midpoints);",
+        "*straightened / straight* isolates the connectivity chosen by the curved swaps.",
+        "A straightened mesh may hold folded triangles (the paper's figure 8; *all valid*",
+        "says so above): its error is then integrated with |J|. *vertices at equal error*",
+        "is the vertex count the curved series needs for the straight mesh's L2 error",
+        "(log-log interpolation between the curved runs), over the straight mesh's count.",
         "",
-        "| function | target | curved / straight | curved / straightened | "
-        "straightened / straight |",
-        "|---|---|---|---|---|",
+        "| function | target | curved / straight | geodesic / straight | "
+        "geodesic / straightened | straightened / straight | vertices at equal error |",
+        "|---|---|---|---|---|---|---|",
     ]
     for name in FUNCTIONS:
         by = {s: {r["target"]: r for r in series_of(results, name, s)} for s in SERIES}
-        for target in sorted(set(by["curved"]) & set(by["straight"]) & set(by["straightened"])):
-            c, st, fl = (by[k][target]["l2"] for k in ("curved", "straight", "straightened"))
-            lines.append(f"| {name} | {target} | {c / st:.2f} | {c / fl:.2f} | {fl / st:.2f} |")
+        both = set(by["curved"]) & set(by["geodesic"]) & set(by["straight"])
+        for target in sorted(both & set(by["straightened"])):
+            c, g, st, fl = (
+                by[k][target]["l2"] for k in ("curved", "geodesic", "straight", "straightened")
+            )
+            need = vertices_for_error(series_of(results, name, "curved"), st)
+            lines.append(
+                f"| {name} | {target} | {c / st:.2f} | {g / st:.2f} | {g / fl:.2f} | "
+                f"{fl / st:.2f} | {need / by['straight'][target]['vertices']:.2f} |"
+            )
     lines += ["", "Functions:", ""]
     lines += [f"- {k} = `{v}` ({DESCRIPTIONS[k]})" for k, v in FUNCTIONS.items()]
     lines += ["", "Every run:", "", "| function | series | target | vertices | L2 | Linf | s |"]
@@ -217,6 +253,7 @@ def plot(results: list[dict], path: Path) -> None:
     styles = {
         "uniform": ("k", "o", "-"),
         "straight": ("tab:blue", "s", "-"),
+        "geodesic": ("tab:purple", "d", "--"),
         "curved": ("tab:red", "^", "-"),
         "straightened": ("tab:orange", "v", ":"),
     }
@@ -257,6 +294,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--replot", action="store_true", help="Only rewrite the table and plot from the JSON."
     )
+    parser.add_argument(
+        "--keep-straight",
+        action="store_true",
+        help="Keep the uniform and straight runs of OUT/convergence.json (they do not depend "
+        "on the curving stages) and compute the curved series only.",
+    )
     args = parser.parse_args(argv)
     vertices = args.vertices or (FULL_VERTICES if args.full else DEFAULT_VERTICES)
     names = args.functions or list(FUNCTIONS)
@@ -269,12 +312,20 @@ def main(argv: list[str] | None = None) -> int:
         plot(saved["runs"], out / "convergence.png")
         return 0
     results: list[dict] = []
+    if args.keep_straight:
+        old = json.loads(log.read_text())["runs"] if log.exists() else []
+        results = [r for r in old if r["series"] in STRAIGHT_SERIES]
     t0 = time.perf_counter()
-    tasks = [(run_uniform, n, v) for n in names for v in vertices]
+    uniform = (
+        [] if args.keep_straight else [(run_uniform, n, v, {}) for n in names for v in vertices]
+    )
+    adapted = [
+        (run_adapted, n, v, {"straight": not args.keep_straight}) for n in names for v in vertices
+    ]
     # largest adapted runs first, so that the two workers finish together
-    tasks += sorted(((run_adapted, n, v) for n in names for v in vertices), key=lambda t: -t[2])
+    tasks = uniform + sorted(adapted, key=lambda t: -t[2])
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        futures = {pool.submit(fn, n, v): (fn.__name__, n, v) for fn, n, v in tasks}
+        futures = {pool.submit(fn, n, v, **kw): (fn.__name__, n, v) for fn, n, v, kw in tasks}
         for fut in as_completed(futures):
             what = futures[fut]
             try:

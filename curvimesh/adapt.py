@@ -18,6 +18,7 @@ from curvimesh import swap as _swap
 from curvimesh.boundary import discretize_box
 from curvimesh.errors import InputError
 from curvimesh.fill import fill_gaps
+from curvimesh.fit import fit_nodes
 from curvimesh.insert import insert_points
 from curvimesh.mesh import Mesh
 from curvimesh.metric import UNIT_TRIANGLE_AREA, MetricField, density_integral
@@ -52,6 +53,7 @@ class AdaptOptions:
     split: bool = True
     recurve: bool = True
     length_swaps: bool = True
+    fit: bool = True
 
 
 def estimated_vertices(metric_area: float) -> float:
@@ -110,7 +112,7 @@ def curve(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> 
 @dataclass(frozen=True)
 class SwapStage:
     """The mesh after the swap stage, and its counts of swaps, insertions, splits,
-    swap rounds and re-curved edge nodes."""
+    swap rounds, re-curved edge nodes and node moves fitting an interpolation metric's function."""
 
     mesh: Mesh
     swaps: int
@@ -118,6 +120,7 @@ class SwapStage:
     rounds: int
     inserted: int = 0
     recurved: int = 0
+    fitted: int = 0
 
 
 #: Most passes of (swaps, re-curving) at the end of the swap stage; a pass after the
@@ -134,7 +137,9 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
     edge lengths (:func:`curvimesh.swap.swap`), alternating (unless
     ``options.recurve`` is off) with edge nodes moved back towards their shortest
     parabolas (:mod:`curvimesh.recurve`) until a re-curving moves nothing, at most
-    :data:`RECURVE_PASSES` times.
+    :data:`RECURVE_PASSES` times; last, when the metric is an ``interpolation``
+    form (and unless ``options.fit`` is off), edge nodes moved to lower the
+    interpolation error of its function (:mod:`curvimesh.fit`).
 
     The swaps for lengths and the re-curving come last, on the mesh that the
     insertions and splits leave: run before them, they change the long edges
@@ -152,8 +157,21 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
     if opt.split:
         sp = split_long_edges(fld, mesh, min_dist=opt.sampling.min_dist)
         mesh, splits = sp.mesh, sp.splits
-    if not (inserted or splits or opt.length_swaps or opt.recurve):
-        return SwapStage(mesh, swaps, splits, rounds, inserted)
+    if inserted or splits or opt.length_swaps or opt.recurve:
+        mesh, swaps, rounds, recurved = _last_swaps(fld, mesh, opt, swaps, rounds)
+    fitted = 0
+    function = fld.error_function
+    if opt.fit and function is not None:
+        fr = fit_nodes(function, mesh)
+        mesh, fitted = fr.mesh, fr.moves
+    return SwapStage(mesh, swaps, splits, rounds, inserted, recurved, fitted)
+
+
+def _last_swaps(
+    fld: MetricField, mesh: Mesh, opt: AdaptOptions, swaps: int, rounds: int
+) -> tuple[Mesh, int, int, int]:
+    """The last swaps, alternating with re-curving (see :func:`swap`); with the counts."""
+    recurved = 0
     for _ in range(RECURVE_PASSES):
         res = _swap.swap(fld, mesh, max_rounds=opt.max_swap_rounds, length_rule=opt.length_swaps)
         mesh, swaps, rounds = res.mesh, swaps + res.swaps, rounds + res.rounds
@@ -163,7 +181,7 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
         mesh, recurved = rc.mesh, recurved + rc.moved
         if rc.moved == 0:
             break
-    return SwapStage(mesh, swaps, splits, rounds, inserted, recurved)
+    return mesh, swaps, rounds, recurved
 
 
 @dataclass(frozen=True)
@@ -201,7 +219,7 @@ def adapt(
     seconds["swap"] = time.perf_counter() - t
     progress(
         f"swap: {res.swaps} swaps in {res.rounds} rounds, {res.inserted} insertions, "
-        f"{res.splits} splits, {res.recurved} re-curved nodes "
+        f"{res.splits} splits, {res.recurved} re-curved nodes, {res.fitted} fitting moves "
         f"({seconds['swap']:.1f} s)"
     )
     mesh, swaps = res.mesh, res.swaps

@@ -498,6 +498,7 @@ def run_batch(
             "split": opt.split,
             "recurve": opt.recurve,
             "length_swaps": opt.length_swaps,
+            "fit": opt.fit,
             "straight": opt.straight,
             "format": fmt,
             "jobs": jobs,
@@ -607,7 +608,7 @@ def summary_markdown(result: BatchResult) -> str:
 def _options_text(opts: dict) -> str:
     off = [
         f"--no-{k.replace('_', '-')}"
-        for k in ("fill", "relocate", "insert", "split", "recurve", "length_swaps")
+        for k in ("fill", "relocate", "insert", "split", "recurve", "length_swaps", "fit")
         if not opts.get(k, True)
     ]
     if opts.get("straight"):

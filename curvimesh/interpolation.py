@@ -382,6 +382,7 @@ class InterpolationMetric:
     key: str = "metric.interpolation"
     quadrature_cells: int = 128
     _fn: Callable = field(init=False, repr=False, compare=False)
+    _values: Callable = field(init=False, repr=False, compare=False)
     _log_scale: float = field(init=False, repr=False, compare=False)
     _shifts: NDArray = field(init=False, repr=False, compare=False)
 
@@ -396,6 +397,7 @@ class InterpolationMetric:
         if not (math.isfinite(self.vertices) and self.vertices > 0):
             raise ValueError(f"vertices must be positive, got {self.vertices!r}")
         object.__setattr__(self, "_fn", _lambdify(_derivatives(self.function, self.degree + 1)))
+        object.__setattr__(self, "_values", _lambdify([_smooth_form(self.function)]))
         h = self.step
         shifts = np.array([[0.0, 0.0], [h, 0.0], [-h, 0.0], [0.0, h], [0.0, -h]])
         object.__setattr__(self, "_shifts", shifts[:, None, :])
@@ -471,6 +473,11 @@ class InterpolationMetric:
         return brentq(
             lambda s: math.log(vertices(s)) - math.log(target), low, high, xtol=1e-12, rtol=1e-14
         )
+
+    def values(self, pts: NDArray) -> NDArray:
+        """The function f at ``(n, 2)`` points, ``(n,)``."""
+        pts = np.asarray(pts, dtype=float).reshape(-1, 2)
+        return self._values(pts[:, 0], pts[:, 1])[0]
 
     # -- the Component interface -------------------------------------------- #
 

@@ -111,6 +111,21 @@ def _element_errors(
     return exact - values @ shape.T, jac
 
 
+def element_l2_squared(
+    f: Callable[[NDArray], NDArray], nodes: NDArray, *, order: int = 8
+) -> NDArray:
+    """∫_t (f − I f)² over each element ``(m,)`` of nodes ``(m, p, 2)`` (P1 or P2).
+
+    The isoparametric interpolant and the collapsed Gauss rule of ``order`` of
+    :func:`interpolation_error`, whose squared L2 error is the sum of these;
+    f is evaluated at the nodes and the quadrature points.
+    """
+    uv, w = triangle_rule(order)
+    values = np.asarray(f(nodes.reshape(-1, 2)), dtype=float).reshape(nodes.shape[:2])
+    err, jac = _element_errors(f, nodes, values, uv)
+    return (err * err * jac) @ w
+
+
 def interpolation_error(
     f: Callable[[NDArray], NDArray], mesh: Mesh, *, order: int = 8, lattice: int = 16
 ) -> InterpolationError:

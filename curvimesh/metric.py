@@ -39,7 +39,7 @@ from sympy.printing.numpy import NumPyPrinter
 
 from curvimesh.errors import ExpressionError, MetricError
 from curvimesh.expressions import FUNCTIONS, parse_expression
-from curvimesh.interpolation import parse_interpolation
+from curvimesh.interpolation import InterpolationMetric, parse_interpolation
 
 X, Y = sympy.symbols("x y", real=True)
 
@@ -390,6 +390,13 @@ class MetricField:
     def sizes(self, pts: NDArray) -> NDArray:
         """The user's size expressions (H, H1, H2 of every item) at points, ``(n, k)``."""
         return np.concatenate([c.sizes_at(pts) for c in self.components], axis=1)
+
+    @property
+    def error_function(self) -> Callable[[NDArray], NDArray] | None:
+        """The function f of the field's ``interpolation`` form (points ``(n, 2)`` → ``(n,)``),
+        when it has exactly one (alone or in an intersection); None otherwise."""
+        forms = [c for c in self.components if isinstance(c, InterpolationMetric)]
+        return forms[0].values if len(forms) == 1 else None
 
     def validate(self, pts: NDArray) -> None:
         """Raise :class:`MetricError` if a size is not finite and positive, or g is not SPD."""

@@ -35,6 +35,7 @@ LAYERS = {
     "split": 8,
     "insert": 8,
     "recurve": 8,
+    "fit": 8,
     "adapt": 9,
     "batch": 10,
     "cli": 11,
