@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import importlib.util
+from pathlib import Path
+
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -13,8 +16,14 @@ from curvimesh.fit import fit_nodes
 from curvimesh.interpolation import compile_function
 from curvimesh.interpolation_error import element_l2_squared, interpolation_error
 from curvimesh.io import read_mesh
-from curvimesh.mesh import Mesh, to_p2_straight
+from curvimesh.mesh import Mesh
 from curvimesh.metric import load_metric_text
+
+_SPEC = importlib.util.spec_from_file_location(
+    "convergence", Path(__file__).resolve().parents[1] / "bench" / "convergence.py"
+)
+convergence = importlib.util.module_from_spec(_SPEC)
+_SPEC.loader.exec_module(convergence)
 
 FRONT = "(1 + tanh(30*((y - 0.5) - 0.2*sin(2*pi*x))))/2"
 FRONT_YAML = f"""
@@ -28,13 +37,7 @@ metric:
 
 def grid_p2(n: int) -> Mesh:
     """Straight P2 mesh of the unit square, n × n squares cut along a diagonal."""
-    t = np.linspace(0.0, 1.0, n + 1)
-    gx, gy = np.meshgrid(t, t, indexing="ij")
-    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
-    a, b = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel()
-    c, d = idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
-    tris = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
-    return to_p2_straight(Mesh(np.column_stack([gx.ravel(), gy.ravel()]), tris, (0, 0, 1, 1)))
+    return convergence.uniform_mesh((n + 1) ** 2)
 
 
 def bent(mesh: Mesh, amount: float, seed: int = 0) -> Mesh:
