@@ -24,6 +24,7 @@ from curvimesh.mesh import Mesh
 from curvimesh.metric import UNIT_TRIANGLE_AREA, MetricField, density_integral
 from curvimesh.recurve import recurve
 from curvimesh.sampling import SamplingOptions, sample_points
+from curvimesh.shift import shift_vertices
 from curvimesh.smooth import relocate
 from curvimesh.split import split_long_edges
 from curvimesh.triangulate import delaunay, metric_delaunay
@@ -53,6 +54,7 @@ class AdaptOptions:
     split: bool = True
     recurve: bool = True
     length_swaps: bool = True
+    shift: bool = True
     fit: bool = True
 
 
@@ -112,7 +114,8 @@ def curve(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> 
 @dataclass(frozen=True)
 class SwapStage:
     """The mesh after the swap stage, and its counts of swaps, insertions, splits,
-    swap rounds, re-curved edge nodes and node moves fitting an interpolation metric's function."""
+    swap rounds, re-curved edge nodes, node moves fitting an interpolation metric's
+    function and vertex shifts."""
 
     mesh: Mesh
     swaps: int
@@ -121,6 +124,7 @@ class SwapStage:
     inserted: int = 0
     recurved: int = 0
     fitted: int = 0
+    shifted: int = 0
 
 
 #: Most passes of (swaps, re-curving) at the end of the swap stage; a pass after the
@@ -137,7 +141,9 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
     edge lengths (:func:`curvimesh.swap.swap`), alternating (unless
     ``options.recurve`` is off) with edge nodes moved back towards their shortest
     parabolas (:mod:`curvimesh.recurve`) until a re-curving moves nothing, at most
-    :data:`RECURVE_PASSES` times; last, when the metric is an ``interpolation``
+    :data:`RECURVE_PASSES` times; then (unless ``options.shift`` is off) end
+    vertices of the edges still longer than 1.4 moved (:mod:`curvimesh.shift`);
+    last, when the metric is an ``interpolation``
     form (and unless ``options.fit`` is off), edge nodes moved to lower the
     interpolation error of its function (:mod:`curvimesh.fit`).
 
@@ -159,12 +165,15 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
         mesh, splits = sp.mesh, sp.splits
     if inserted or splits or opt.length_swaps or opt.recurve:
         mesh, swaps, rounds, recurved = _last_swaps(fld, mesh, opt, swaps, rounds)
-    fitted = 0
+    shifted = fitted = 0
+    if opt.shift:
+        sh = shift_vertices(fld, mesh, min_dist=opt.sampling.min_dist)
+        mesh, shifted = sh.mesh, sh.shifted
     function = fld.error_function
     if opt.fit and function is not None:
         fr = fit_nodes(function, mesh)
         mesh, fitted = fr.mesh, fr.moves
-    return SwapStage(mesh, swaps, splits, rounds, inserted, recurved, fitted)
+    return SwapStage(mesh, swaps, splits, rounds, inserted, recurved, fitted, shifted)
 
 
 def _last_swaps(
@@ -219,7 +228,8 @@ def adapt(
     seconds["swap"] = time.perf_counter() - t
     progress(
         f"swap: {res.swaps} swaps in {res.rounds} rounds, {res.inserted} insertions, "
-        f"{res.splits} splits, {res.recurved} re-curved nodes, {res.fitted} fitting moves "
+        f"{res.splits} splits, {res.recurved} re-curved nodes, {res.shifted} shifts, "
+        f"{res.fitted} fitting moves "
         f"({seconds['swap']:.1f} s)"
     )
     mesh, swaps = res.mesh, res.swaps

@@ -498,6 +498,7 @@ def run_batch(
             "split": opt.split,
             "recurve": opt.recurve,
             "length_swaps": opt.length_swaps,
+            "shift": opt.shift,
             "fit": opt.fit,
             "straight": opt.straight,
             "format": fmt,
@@ -608,7 +609,7 @@ def summary_markdown(result: BatchResult) -> str:
 def _options_text(opts: dict) -> str:
     off = [
         f"--no-{k.replace('_', '-')}"
-        for k in ("fill", "relocate", "insert", "split", "recurve", "length_swaps", "fit")
+        for k in ("fill", "relocate", "insert", "split", "recurve", "length_swaps", "shift", "fit")
         if not opts.get(k, True)
     ]
     if opts.get("straight"):

@@ -153,6 +153,7 @@ def _options(
     no_split: bool = False,
     no_recurve: bool = False,
     no_length_swaps: bool = False,
+    no_shift: bool = False,
     no_fit: bool = False,
 ) -> pipeline.AdaptOptions:
     return pipeline.AdaptOptions(
@@ -165,6 +166,7 @@ def _options(
         split=not no_split,
         recurve=not no_recurve,
         length_swaps=not no_length_swaps,
+        shift=not no_shift,
         fit=not no_fit,
     )
 
@@ -172,13 +174,15 @@ def _options(
 RECURVE_HELP = "No re-curving of edge nodes towards their shortest parabolas."
 LENGTH_SWAPS_HELP = "No swaps for edge lengths (swaps for quality (4) only)."
 FIT_HELP = "No edge nodes fitted to the function of an interpolation metric."
+SHIFT_HELP = "No vertex shifts at the edges left longer than 1.4."
 
 
 def stage_flags(fn: Callable) -> Callable:
     """--no-fill, --no-relocate, --no-insert, --no-split, --no-recurve, --no-length-swaps,
-    --no-fit: the stages beyond the paper's method."""
+    --no-shift, --no-fit: the stages beyond the paper's method."""
     for name, what in (
         ("--no-fit", FIT_HELP),
+        ("--no-shift", SHIFT_HELP),
         ("--no-length-swaps", LENGTH_SWAPS_HELP),
         ("--no-recurve", RECURVE_HELP),
         ("--no-split", "No splits of long curved edges."),
@@ -342,6 +346,7 @@ def curve(ctx: Context, mesh_path, metric_path, output, fmt, straight) -> None:
 @click.option("--no-split", is_flag=True, help="No splits of long curved edges.")
 @click.option("--no-recurve", is_flag=True, help=RECURVE_HELP)
 @click.option("--no-length-swaps", is_flag=True, help=LENGTH_SWAPS_HELP)
+@click.option("--no-shift", is_flag=True, help=SHIFT_HELP)
 @click.option("--no-fit", is_flag=True, help=FIT_HELP)
 @command
 def swap(
@@ -355,11 +360,13 @@ def swap(
     no_split,
     no_recurve,
     no_length_swaps,
+    no_shift,
     no_fit,
 ) -> None:
     """Stage 4: curvilinear edge swaps driven by quality (4) and edge lengths,
     re-curving, vertex insertions and splits at the long edges, and swaps and
-    re-curving again; for an interpolation metric, edge nodes fitted to its function."""
+    re-curving again, vertex shifts at the edges left long; for an interpolation
+    metric, edge nodes fitted to its function."""
     fld = load_metric(metric_path)
     mesh = _require_triangles(_read(mesh_path, fld), mesh_path)
     if mesh.order != 2:
@@ -370,12 +377,14 @@ def swap(
         no_split=no_split,
         no_recurve=no_recurve,
         no_length_swaps=no_length_swaps,
+        no_shift=no_shift,
         no_fit=no_fit,
     )
     res = pipeline.swap(fld, mesh, opt)
     ctx.progress(
         f"swap: {res.swaps} swaps in {res.rounds} rounds, {res.inserted} insertions, "
-        f"{res.splits} splits, {res.recurved} re-curved nodes, {res.fitted} fitting moves"
+        f"{res.splits} splits, {res.recurved} re-curved nodes, {res.shifted} shifts, "
+        f"{res.fitted} fitting moves"
     )
     write_mesh(output, res.mesh, fmt=fmt)
 
@@ -416,17 +425,18 @@ def adapt(
     no_split,
     no_recurve,
     no_length_swaps,
+    no_shift,
     no_fit,
 ) -> None:
     """All stages: sample | triangulate | curve | swap, in one process.
 
     The stages beyond the paper's method (gap filling, vertex relocation,
-    vertex insertion, edge splits, re-curving, swaps for lengths, and for an
-    interpolation metric edge nodes fitted to its function) run by default;
-    --no-fill, --no-relocate, --no-insert, --no-split, --no-recurve,
-    --no-length-swaps and --no-fit turn them off, so that the paper's method
-    alone is `--no-fill --no-relocate --no-insert --no-split --no-recurve
-    --no-length-swaps --no-fit`.
+    vertex insertion, edge splits, re-curving, swaps for lengths, vertex shifts,
+    and for an interpolation metric edge nodes fitted to its function) run by
+    default; --no-fill, --no-relocate, --no-insert, --no-split, --no-recurve,
+    --no-length-swaps, --no-shift and --no-fit turn them off, so that the
+    paper's method alone is `--no-fill --no-relocate --no-insert --no-split
+    --no-recurve --no-length-swaps --no-shift --no-fit`.
     """
     fld = load_metric(metric_path)
     opt = _options(
@@ -439,6 +449,7 @@ def adapt(
         no_split=no_split,
         no_recurve=no_recurve,
         no_length_swaps=no_length_swaps,
+        no_shift=no_shift,
         no_fit=no_fit,
     )
     t0 = time.perf_counter()
@@ -598,6 +609,7 @@ def batch(
     no_split,
     no_recurve,
     no_length_swaps,
+    no_shift,
     no_fit,
 ) -> None:
     """Adapt every metric file, write its mesh, report and pictures, and a summary.
@@ -619,6 +631,7 @@ def batch(
         no_split=no_split,
         no_recurve=no_recurve,
         no_length_swaps=no_length_swaps,
+        no_shift=no_shift,
         no_fit=no_fit,
     )
     result = run_batch(

@@ -182,6 +182,7 @@ def test_check_metric_prints_the_ideal_count():
         ("--no-insert",),
         ("--no-recurve",),
         ("--no-length-swaps",),
+        ("--no-shift",),
         (
             "--no-fill",
             "--no-relocate",
@@ -189,6 +190,7 @@ def test_check_metric_prints_the_ideal_count():
             "--no-split",
             "--no-recurve",
             "--no-length-swaps",
+            "--no-shift",
         ),
     ],
 )
@@ -203,7 +205,7 @@ def test_stage_flags_give_the_library_mesh_with_those_stages_off(workdir, flags)
     )
     assert r.exit_code == 0, r.output
     off = {f.removeprefix("--no-").replace("-", "_") for f in flags}
-    stages = ("fill", "relocate", "insert", "split", "recurve", "length_swaps")
+    stages = ("fill", "relocate", "insert", "split", "recurve", "length_swaps", "shift")
     opt = pipeline.AdaptOptions(**{k: k not in off for k in stages})
     want = pipeline.adapt(load_metric(workdir / "m.yaml"), opt).mesh
     got = read_mesh(out)

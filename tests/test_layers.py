@@ -36,6 +36,7 @@ LAYERS = {
     "insert": 8,
     "recurve": 8,
     "fit": 8,
+    "shift": 8,
     "adapt": 9,
     "batch": 10,
     "cli": 11,

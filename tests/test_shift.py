@@ -1,0 +1,105 @@
+"""Vertex shifts at long edges (curvimesh.shift)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import Delaunay
+
+from curvimesh import adapt as pipeline
+from curvimesh.bezier import valid_exact
+from curvimesh.mesh import Mesh, signed_areas, to_p2_straight
+from curvimesh.metric import load_metric, load_metric_text
+from curvimesh.quality import edge_lengths, metric_areas, quality_from
+from curvimesh.shift import shift_vertices
+
+METRICS = Path(__file__).resolve().parents[1] / "metrics"
+EUCLID = "domain: {box: [[-0.5, -0.5], [6.5, 6.5]]}\nmetric: {isotropic: 1}\n"
+
+
+def lattice(n: int = 6) -> tuple[Mesh, int]:
+    """Unit equilateral triangles (straight P2) in the box of EUCLID; a middle vertex."""
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    pts = np.column_stack([(i + 0.5 * j).ravel(), (np.sqrt(3) / 2 * j).ravel()]).astype(float)
+    tris = Delaunay(pts).simplices
+    area = signed_areas(pts, tris)
+    tris[area < 0] = tris[area < 0][:, [0, 2, 1]]
+    mesh = to_p2_straight(Mesh(pts, tris, (-0.5, -0.5, 6.5, 6.5)))
+    middle = int(np.argmin(np.hypot(*(pts - pts.mean(axis=0)).T)))
+    return mesh, middle
+
+
+def displaced(mesh: Mesh, v: int, by: np.ndarray) -> Mesh:
+    """The mesh with vertex v moved by ``by`` and its edges kept straight."""
+    p1 = Mesh(np.asarray(mesh.points)[: len(mesh.vertex_ids)], mesh.triangles[:, :3], mesh.box)
+    pts = np.array(p1.points)
+    pts[v] += by
+    return to_p2_straight(Mesh(pts, p1.triangles, mesh.box))
+
+
+def lengths(fld, mesh: Mesh) -> np.ndarray:
+    return edge_lengths(fld, np.asarray(mesh.points), mesh.edges, mesh.edge_mid)
+
+
+def test_a_displaced_vertex_is_moved_back_towards_its_lattice_place():
+    fld = load_metric_text(EUCLID)
+    mesh, v = lattice()
+    home = np.asarray(mesh.points)[v].copy()
+    bad = displaced(mesh, v, np.array([-0.45, 0.0]))  # its edge to the right: 1.45 long
+    before = lengths(fld, bad)
+    assert before.max() > 1.44
+    res = shift_vertices(fld, bad)
+    after = lengths(fld, res.mesh)
+    assert res.shifted >= 1
+    assert after.max() <= 1.4
+    assert after.min() >= before.min() - 1e-12
+    assert np.hypot(*(np.asarray(res.mesh.points)[v] - home)) < 0.45
+    assert valid_exact(np.asarray(res.mesh.points)[res.mesh.triangles]).all()
+    # only the vertex and the nodes of its edges moved
+    moved = np.flatnonzero(np.any(np.asarray(res.mesh.points) != np.asarray(bad.points), axis=1))
+    star_nodes = bad.edge_mid[np.flatnonzero((bad.edges == v).any(axis=1))]
+    assert set(moved.tolist()) <= {v, *star_nodes.tolist()}
+    again = shift_vertices(fld, bad).mesh
+    assert np.asarray(again.points).tobytes() == np.asarray(res.mesh.points).tobytes()
+
+
+def test_a_mesh_without_long_edges_is_returned_as_it_is():
+    fld = load_metric_text(EUCLID)
+    mesh, _ = lattice()
+    res = shift_vertices(fld, mesh)
+    assert res.shifted == 0
+    assert np.asarray(res.mesh.points).tobytes() == np.asarray(mesh.points).tobytes()
+
+
+def test_boundary_vertices_stay():
+    fld = load_metric_text(EUCLID)
+    mesh, _ = lattice()
+    corner = 0  # (0, 0): on the boundary of the triangulation
+    bad = displaced(mesh, corner, np.array([-0.45, 0.0]))
+    res = shift_vertices(fld, bad)
+    np.testing.assert_array_equal(np.asarray(res.mesh.points)[corner], [-0.45, 0.0])
+
+
+def test_the_singular_centre_of_concentric_loses_its_long_edges():
+    # radial 0.02, tangential 0.1 around a centre where the metric has no limit:
+    # without shifts the edges there stay up to about 2 long
+    fld = load_metric(METRICS / "concentric.yaml")
+    mesh = pipeline.adapt(fld, pipeline.AdaptOptions(shift=False)).mesh
+    before = lengths(fld, mesh)
+    res = shift_vertices(fld, mesh)
+    after = lengths(fld, res.mesh)
+    assert before.max() > 1.5
+    assert after.max() <= 1.5
+    assert after.min() >= min(0.7, before.min()) - 1e-9
+    pts = np.asarray(res.mesh.points)
+    assert valid_exact(pts[res.mesh.triangles]).all()
+
+    def worst(m: Mesh, ln: np.ndarray) -> float:
+        return float(
+            quality_from(
+                metric_areas(fld, np.asarray(m.points)[m.triangles]), ln[m.tri_edges]
+            ).min()
+        )
+
+    assert worst(res.mesh, after) >= worst(mesh, before) - 1e-9
