@@ -1,5 +1,6 @@
-"""Swaps for edge lengths (:func:`curvimesh.swap.swap` with ``length_rule``), on quads
-whose lengths and qualities are known by hand in the Euclidean metric."""
+"""Swaps (:func:`curvimesh.swap.swap`): the rule for edge lengths (``length_rule``) and
+the refusal of short new edges, on quads whose lengths and qualities are known by hand
+in the Euclidean metric."""
 
 from __future__ import annotations
 
@@ -77,3 +78,19 @@ def test_the_rule_for_lengths_never_lowers_the_worst_quality():
     assert swap(fld, _kite(0.3), length_rule=True, min_quality=0.62).swaps == 0
     # without the lone triangle the kite's pair is the worst of the mesh, 0.6255
     assert swap(fld, _kite(0.3, lone=False), length_rule=True).swaps == 0
+
+
+def test_no_swap_makes_an_edge_shorter_than_07():
+    # a flat kite: a-b 1.45 long, c-d = (0.7, ±0.3) only 0.6 long. By hand the
+    # quality rule prefers c-d (worse quality of the pair 0.452 → 0.936), but the
+    # new edge would be shorter than 0.7 and than a-b
+    fld = load_metric_text(EUCLID)
+    pts = [[0.0, 0.0], [1.45, 0.0], [0.7, 0.3], [0.7, -0.3]]
+    mesh = to_p2_straight(Mesh(pts, [[0, 1, 2], [1, 0, 3]], (-1, -1, 2, 1)))
+    q_old = min(_q(0, 0, 1.45, 0, 0.7, 0.3), _q(1.45, 0, 0, 0, 0.7, -0.3))
+    q_new = min(_q(0, 0, 0.7, -0.3, 0.7, 0.3), _q(0.7, -0.3, 1.45, 0, 0.7, 0.3))
+    assert q_old == pytest.approx(0.452, abs=1e-3) and q_new == pytest.approx(0.936, abs=1e-3)
+    assert swap(fld, mesh, min_length=0.0).swaps == 1
+    assert swap(fld, mesh).swaps == 0
+    assert swap(fld, mesh, length_rule=True).swaps == 0
+    assert swap(fld, mesh, min_length=0.6 - 1e-9).swaps == 1
