@@ -147,51 +147,46 @@ def _options(
     seed: int = 0,
     max_vertices: int = pipeline.MAX_VERTICES,
     straight: bool = False,
-    no_fill: bool = False,
-    no_relocate: bool = False,
-    no_insert: bool = False,
-    no_split: bool = False,
-    no_recurve: bool = False,
-    no_length_swaps: bool = False,
-    no_shift: bool = False,
-    no_fit: bool = False,
+    **stages: bool,
 ) -> pipeline.AdaptOptions:
-    return pipeline.AdaptOptions(
-        seed=seed,
-        max_vertices=max_vertices,
-        straight=straight,
-        fill=not no_fill,
-        relocate=not no_relocate,
-        insert=not no_insert,
-        split=not no_split,
-        recurve=not no_recurve,
-        length_swaps=not no_length_swaps,
-        shift=not no_shift,
-        fit=not no_fit,
-    )
+    """The pipeline's options; ``stages`` switches stages by their :class:`AdaptOptions` field."""
+    return pipeline.AdaptOptions(seed=seed, max_vertices=max_vertices, straight=straight, **stages)
 
 
-RECURVE_HELP = "No re-curving of edge nodes towards their shortest parabolas."
-LENGTH_SWAPS_HELP = "No swaps for edge lengths (swaps for quality (4) only)."
-FIT_HELP = "No edge nodes fitted to the function of an interpolation metric."
-SHIFT_HELP = "No vertex shifts at the edges left longer than 1.4."
+#: The stages beyond the paper's method, in pipeline order: the AdaptOptions field
+#: (the flag is --no-FIELD) and the flag's help.
+STAGES = (
+    ("fill", "No gap filling after Algorithm 1."),
+    ("relocate", "No vertex relocation."),
+    ("insert", "No vertex insertions at long curved edges."),
+    ("split", "No splits of long curved edges."),
+    ("recurve", "No re-curving of edge nodes towards their shortest parabolas."),
+    ("length_swaps", "No swaps for edge lengths (swaps for quality (4) only)."),
+    ("shift", "No vertex shifts at the edges left longer than 1.4."),
+    ("fit", "No edge nodes fitted to the function of an interpolation metric."),
+)
+
+#: The stages run by the swap stage (``curvimesh swap``).
+SWAP_STAGES = tuple(name for name, _ in STAGES[2:])
 
 
-def stage_flags(fn: Callable) -> Callable:
-    """--no-fill, --no-relocate, --no-insert, --no-split, --no-recurve, --no-length-swaps,
-    --no-shift, --no-fit: the stages beyond the paper's method."""
-    for name, what in (
-        ("--no-fit", FIT_HELP),
-        ("--no-shift", SHIFT_HELP),
-        ("--no-length-swaps", LENGTH_SWAPS_HELP),
-        ("--no-recurve", RECURVE_HELP),
-        ("--no-split", "No splits of long curved edges."),
-        ("--no-insert", "No vertex insertions at long curved edges."),
-        ("--no-relocate", "No vertex relocation."),
-        ("--no-fill", "No gap filling after Algorithm 1."),
-    ):
-        fn = click.option(name, is_flag=True, help=what)(fn)
-    return fn
+def stage_flags(*names: str) -> Callable[[Callable], Callable]:
+    """The --no-STAGE flags of the named stages (all of :data:`STAGES` by default),
+    handed to the command as one keyword ``stages``: {AdaptOptions field: on}."""
+    chosen = [(n, what) for n, what in STAGES if not names or n in names]
+
+    def decorate(fn: Callable) -> Callable:
+        @functools.wraps(fn)
+        def wrapper(*args: Any, **kwargs: Any) -> None:
+            stages = {n: not kwargs.pop(f"no_{n}") for n, _ in chosen}
+            return fn(*args, stages=stages, **kwargs)
+
+        for n, what in reversed(chosen):
+            flag = "--no-" + n.replace("_", "-")
+            wrapper = click.option(flag, f"no_{n}", is_flag=True, help=what)(wrapper)
+        return wrapper
+
+    return decorate
 
 
 def max_vertices_option(fn: Callable) -> Callable:
@@ -294,7 +289,7 @@ def geodesic(ctx: Context, metric_path, start, end, angle, length) -> None:
 def sample(ctx: Context, metric_path, output, fmt, seed, max_vertices, no_fill) -> None:
     """Stage 1: sample points (Algorithm 1, then gap filling); writes nodes with vertex cells."""
     fld = load_metric(metric_path)
-    opt = _options(seed=seed, max_vertices=max_vertices, no_fill=no_fill)
+    opt = _options(seed=seed, max_vertices=max_vertices, fill=not no_fill)
     pipeline.check_size(fld, max_vertices)
     cloud = pipeline.sample(fld, opt)
     ctx.progress(f"sample: {len(cloud.points)} points")
@@ -318,7 +313,7 @@ def triangulate(ctx: Context, mesh_path, metric_path, output, fmt, no_relocate) 
     if len(cloud.points) < 3:
         raise InputError(f"{mesh_path}: {len(cloud.points)} node(s); at least 3 are needed")
     try:
-        mesh = pipeline.triangulate(cloud, fld, _options(no_relocate=no_relocate))
+        mesh = pipeline.triangulate(cloud, fld, _options(relocate=not no_relocate))
     except WorkError as exc:  # Qhull failed on these points (all collinear, duplicates)
         raise InputError(f"{mesh_path}: cannot triangulate the nodes: {exc}") from None
     write_mesh(output, mesh, fmt=fmt)
@@ -342,12 +337,7 @@ def curve(ctx: Context, mesh_path, metric_path, output, fmt, straight) -> None:
 @metric_option()
 @output_option
 @straight_option
-@click.option("--no-insert", is_flag=True, help="No vertex insertions at long curved edges.")
-@click.option("--no-split", is_flag=True, help="No splits of long curved edges.")
-@click.option("--no-recurve", is_flag=True, help=RECURVE_HELP)
-@click.option("--no-length-swaps", is_flag=True, help=LENGTH_SWAPS_HELP)
-@click.option("--no-shift", is_flag=True, help=SHIFT_HELP)
-@click.option("--no-fit", is_flag=True, help=FIT_HELP)
+@stage_flags(*SWAP_STAGES)
 @command
 def swap(
     ctx: Context,
@@ -356,12 +346,7 @@ def swap(
     output,
     fmt,
     straight,
-    no_insert,
-    no_split,
-    no_recurve,
-    no_length_swaps,
-    no_shift,
-    no_fit,
+    stages,
 ) -> None:
     """Stage 4: curvilinear edge swaps driven by quality (4) and edge lengths,
     re-curving, vertex insertions and splits at the long edges, and swaps and
@@ -371,16 +356,7 @@ def swap(
     mesh = _require_triangles(_read(mesh_path, fld), mesh_path)
     if mesh.order != 2:
         raise InputError(f"{mesh_path}: swap needs a P2 (triangle6) mesh; run curve first")
-    opt = _options(
-        straight=straight,
-        no_insert=no_insert,
-        no_split=no_split,
-        no_recurve=no_recurve,
-        no_length_swaps=no_length_swaps,
-        no_shift=no_shift,
-        no_fit=no_fit,
-    )
-    res = pipeline.swap(fld, mesh, opt)
+    res = pipeline.swap(fld, mesh, _options(straight=straight, **stages))
     ctx.progress(
         f"swap: {res.swaps} swaps in {res.rounds} rounds, {res.inserted} insertions, "
         f"{res.splits} splits, {res.recurved} re-curved nodes, {res.shifted} shifts, "
@@ -408,7 +384,7 @@ def _require_triangles(mesh, path: str):
 )
 @max_vertices_option
 @straight_option
-@stage_flags
+@stage_flags()
 @command
 def adapt(
     ctx: Context,
@@ -419,14 +395,7 @@ def adapt(
     stats_path,
     max_vertices,
     straight,
-    no_fill,
-    no_relocate,
-    no_insert,
-    no_split,
-    no_recurve,
-    no_length_swaps,
-    no_shift,
-    no_fit,
+    stages,
 ) -> None:
     """All stages: sample | triangulate | curve | swap, in one process.
 
@@ -439,19 +408,7 @@ def adapt(
     --no-recurve --no-length-swaps --no-shift --no-fit`.
     """
     fld = load_metric(metric_path)
-    opt = _options(
-        seed=seed,
-        max_vertices=max_vertices,
-        straight=straight,
-        no_fill=no_fill,
-        no_relocate=no_relocate,
-        no_insert=no_insert,
-        no_split=no_split,
-        no_recurve=no_recurve,
-        no_length_swaps=no_length_swaps,
-        no_shift=no_shift,
-        no_fit=no_fit,
-    )
+    opt = _options(seed=seed, max_vertices=max_vertices, straight=straight, **stages)
     t0 = time.perf_counter()
     res = pipeline.adapt(fld, opt, progress=ctx.progress)
     total = time.perf_counter() - t0
@@ -591,7 +548,7 @@ def circles(ctx: Context, metric_path, centres, plot_path) -> None:
 @format_option
 @seed_option
 @straight_option
-@stage_flags
+@stage_flags()
 @command
 def batch(
     ctx: Context,
@@ -603,14 +560,7 @@ def batch(
     fmt,
     seed,
     straight,
-    no_fill,
-    no_relocate,
-    no_insert,
-    no_split,
-    no_recurve,
-    no_length_swaps,
-    no_shift,
-    no_fit,
+    stages,
 ) -> None:
     """Adapt every metric file, write its mesh, report and pictures, and a summary.
 
@@ -622,18 +572,7 @@ def batch(
     from curvimesh.batch import parse_gate, run_batch, summary_table
 
     gates = [parse_gate(text) for text in requires]
-    opt = _options(
-        seed=seed,
-        straight=straight,
-        no_fill=no_fill,
-        no_relocate=no_relocate,
-        no_insert=no_insert,
-        no_split=no_split,
-        no_recurve=no_recurve,
-        no_length_swaps=no_length_swaps,
-        no_shift=no_shift,
-        no_fit=no_fit,
-    )
+    opt = _options(seed=seed, straight=straight, **stages)
     result = run_batch(
         metric_paths,
         out_dir,
