@@ -53,7 +53,7 @@ from numpy.typing import NDArray
 
 from curvimesh.bezier import valid_exact
 from curvimesh.interpolation_error import element_l2_squared
-from curvimesh.mesh import Mesh, independent_flips, signed_areas
+from curvimesh.mesh import Mesh, independent_flips, local_edge, signed_areas
 
 #: Scalings s of an edge's bend tried each round (1 is the current node).
 SCALES = (1.25, 0.75, 0.5, 0.0)
@@ -110,8 +110,7 @@ def fit_nodes(
     tangent = x1 - x0  # of length ℓ: steps are relative to the edge
     normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
     t1, t2 = et[cand, 0], et[cand, 1]
-    s1 = 3 + np.argmax(tri_edges[t1] == cand[:, None], axis=1)
-    s2 = 3 + np.argmax(tri_edges[t2] == cand[:, None], axis=1)
+    s1, s2 = 3 + local_edge(tri_edges, t1, cand), 3 + local_edge(tri_edges, t2, cand)
     # a pair whose error is at the level of rounding is left alone
     scale = float(np.abs(f(pts[np.unique(tris)])).max())
     areas = np.abs(signed_areas(pts, tris[:, :3]))

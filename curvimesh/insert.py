@@ -56,7 +56,7 @@ from numpy.typing import NDArray
 from curvimesh.bezier import p2_map, valid_exact
 from curvimesh.fill import metric_circumcentres
 from curvimesh.geodesic import parabola_points, shortest_parabola
-from curvimesh.mesh import Mesh, rotate_triangles
+from curvimesh.mesh import Mesh, local_edge, rotate_triangles
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths, edge_lengths_fast, metric_areas, quality_from
 from curvimesh.sampling import search_halfwidths, too_close
@@ -206,8 +206,7 @@ def _insert_round(
     if ns == 0:
         return mesh, 0
     t1, t2 = et[seeds, 0], et[seeds, 1]
-    k1 = np.argmax(tri_edges[t1] == seeds[:, None], axis=1)
-    k2 = np.argmax(tri_edges[t2] == seeds[:, None], axis=1)
+    k1, k2 = local_edge(tri_edges, t1, seeds), local_edge(tri_edges, t2, seeds)
     r1 = rotate_triangles(tris[t1], k1)  # (a, b, c, n_ab, n_bc, n_ca)
     r2 = rotate_triangles(tris[t2], k2)  # (b, a, d, n_ba, n_ad, n_db)
     quad = np.column_stack([r1[:, 0], r2[:, 2], r1[:, 1], r1[:, 2]])  # a, d, b, c (CCW)

@@ -352,6 +352,17 @@ def boundary_sides(mesh: Mesh, tol: float | None = None) -> NDArray[np.int64]:
     return result
 
 
+def local_edge(tri_edges: NDArray, tris: NDArray, edges: NDArray) -> NDArray[np.int64]:
+    """Local index (0, 1, 2) of each edge ``(k,)`` in its triangle ``(k,)``: edge i of a
+    triangle joins corners i and i + 1, and a P2 triangle holds its node in slot 3 + i.
+
+    >>> mesh = Mesh([[0, 0], [1, 0], [1, 1], [0, 1]], [[0, 1, 2], [0, 2, 3]])
+    >>> local_edge(mesh.tri_edges, np.array([0, 1]), np.array([1, 1])).tolist()
+    [2, 0]
+    """
+    return np.argmax(tri_edges[tris] == np.asarray(edges)[:, None], axis=1)
+
+
 def flip_candidates(mesh: Mesh) -> tuple[NDArray[np.int64], ...]:
     """The interior edges of ``mesh`` as flip candidates, with their quads.
 
@@ -369,8 +380,7 @@ def flip_candidates(mesh: Mesh) -> tuple[NDArray[np.int64], ...]:
     e = np.flatnonzero(edge_tris[:, 1] >= 0)
     t1, t2 = edge_tris[e, 0], edge_tris[e, 1]
     tri_edges, corners = mesh.tri_edges, mesh.corners
-    k1 = np.argmax(tri_edges[t1] == e[:, None], axis=1)
-    k2 = np.argmax(tri_edges[t2] == e[:, None], axis=1)
+    k1, k2 = local_edge(tri_edges, t1, e), local_edge(tri_edges, t2, e)
     a = corners[t1, k1]
     b = corners[t1, (k1 + 1) % 3]
     c = corners[t1, (k1 + 2) % 3]

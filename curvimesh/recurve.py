@@ -46,7 +46,7 @@ import numpy as np
 
 from curvimesh.bezier import valid_exact
 from curvimesh.geodesic import parabola_length, shortest_parabola
-from curvimesh.mesh import Mesh, independent_flips
+from curvimesh.mesh import Mesh, independent_flips, local_edge
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths_fast, metric_areas, quality_from
 
@@ -99,8 +99,7 @@ def recurve(
     cur_len = parabola_length(field, x0, x1, pts[emid[cand]], rtol=LENGTH_RTOL)
     t1, t2 = et[cand, 0], et[cand, 1]
     # slot of the edge's node in each triangle: 3 + local edge index
-    s1 = 3 + np.argmax(tri_edges[t1] == cand[:, None], axis=1)
-    s2 = 3 + np.argmax(tri_edges[t2] == cand[:, None], axis=1)
+    s1, s2 = 3 + local_edge(tri_edges, t1, cand), 3 + local_edge(tri_edges, t2, cand)
     active = np.ones(len(cand), dtype=bool)  # worth a try in this round
     done = np.zeros(len(cand), dtype=bool)  # at the optimum
     moved = rounds = 0

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from curvimesh.bezier import valid_exact
 from curvimesh.geodesic import parabola_points, shortest_parabola
-from curvimesh.mesh import Mesh, independent_flips, rotate_triangles
+from curvimesh.mesh import Mesh, independent_flips, local_edge, rotate_triangles
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths, edge_lengths_fast, metric_areas, quality_from
 from curvimesh.sampling import search_halfwidths, too_close
@@ -81,14 +81,14 @@ def _split_round(
     et = mesh.edge_tris[cand]
     t1, t2 = et[:, 0], et[:, 1]
     has2 = t2 >= 0
-    k1 = np.argmax(mesh.tri_edges[t1] == cand[:, None], axis=1)
+    k1 = local_edge(mesh.tri_edges, t1, cand)
     r1 = rotate_triangles(tris[t1], k1)  # (a, b, c, n_ab, n_bc, n_ca)
     a, b, c = r1[:, 0], r1[:, 1], r1[:, 2]
     v = r1[:, 3]  # the edge's node becomes the vertex
     d = np.full(len(cand), -1)
     r2 = np.zeros_like(r1)
     if has2.any():
-        k2 = np.argmax(mesh.tri_edges[t2[has2]] == cand[has2, None], axis=1)
+        k2 = local_edge(mesh.tri_edges, t2[has2], cand[has2])
         r2[has2] = rotate_triangles(tris[t2[has2]], k2)  # (b, a, d, n_ab, n_ad, n_db)
         d[has2] = r2[has2, 2]
     # halves of the split parabola: nodes x(1/4) (a side) and x(3/4) (b side)
