@@ -23,6 +23,7 @@ from curvimesh.insert import insert_points
 from curvimesh.mesh import Mesh
 from curvimesh.metric import UNIT_TRIANGLE_AREA, MetricField, density_integral
 from curvimesh.recurve import recurve
+from curvimesh.remove import remove_vertices
 from curvimesh.sampling import SamplingOptions, sample_points
 from curvimesh.shift import shift_vertices
 from curvimesh.smooth import relocate
@@ -55,6 +56,7 @@ class AdaptOptions:
     recurve: bool = True
     length_swaps: bool = True
     shift: bool = True
+    remove: bool = True
     fit: bool = True
 
 
@@ -115,7 +117,7 @@ def curve(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> 
 class SwapStage:
     """The mesh after the swap stage, and its counts of swaps, insertions, splits,
     swap rounds, re-curved edge nodes, node moves fitting an interpolation metric's
-    function and vertex shifts."""
+    function, vertex shifts and vertex removals."""
 
     mesh: Mesh
     swaps: int
@@ -125,6 +127,15 @@ class SwapStage:
     recurved: int = 0
     fitted: int = 0
     shifted: int = 0
+    removed: int = 0
+
+    def counts(self) -> str:
+        """What the stage did, in one line."""
+        return (
+            f"{self.swaps} swaps in {self.rounds} rounds, {self.inserted} insertions, "
+            f"{self.splits} splits, {self.recurved} re-curved nodes, {self.shifted} shifts, "
+            f"{self.removed} removals, {self.fitted} fitting moves"
+        )
 
 
 #: Most passes of (swaps, re-curving) at the end of the swap stage; a pass after the
@@ -142,7 +153,9 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
     ``options.recurve`` is off) with edge nodes moved back towards their shortest
     parabolas (:mod:`curvimesh.recurve`) until a re-curving moves nothing, at most
     :data:`RECURVE_PASSES` times; then (unless ``options.shift`` is off) end
-    vertices of the edges still longer than 1.4 moved (:mod:`curvimesh.shift`);
+    vertices of the edges still longer than 1.4 and of the triangles of quality
+    below 0.3 moved (:mod:`curvimesh.shift`); then (unless ``options.remove`` is
+    off) vertices of the triangles still below 0.3 removed (:mod:`curvimesh.remove`);
     last, when the metric is an ``interpolation``
     form (and unless ``options.fit`` is off), edge nodes moved to lower the
     interpolation error of its function (:mod:`curvimesh.fit`).
@@ -165,15 +178,18 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
         mesh, splits = sp.mesh, sp.splits
     if inserted or splits or opt.length_swaps or opt.recurve:
         mesh, swaps, rounds, recurved = _last_swaps(fld, mesh, opt, swaps, rounds)
-    shifted = fitted = 0
+    shifted = removed = fitted = 0
     if opt.shift:
         sh = shift_vertices(fld, mesh, min_dist=opt.sampling.min_dist)
         mesh, shifted = sh.mesh, sh.shifted
+    if opt.remove:
+        rm = remove_vertices(fld, mesh, min_dist=opt.sampling.min_dist)
+        mesh, removed = rm.mesh, rm.removed
     function = fld.error_function
     if opt.fit and function is not None:
         fr = fit_nodes(function, mesh)
         mesh, fitted = fr.mesh, fr.moves
-    return SwapStage(mesh, swaps, splits, rounds, inserted, recurved, fitted, shifted)
+    return SwapStage(mesh, swaps, splits, rounds, inserted, recurved, fitted, shifted, removed)
 
 
 def _last_swaps(
@@ -226,11 +242,6 @@ def adapt(
     t = time.perf_counter()
     res = swap(fld, p2, opt)
     seconds["swap"] = time.perf_counter() - t
-    progress(
-        f"swap: {res.swaps} swaps in {res.rounds} rounds, {res.inserted} insertions, "
-        f"{res.splits} splits, {res.recurved} re-curved nodes, {res.shifted} shifts, "
-        f"{res.fitted} fitting moves "
-        f"({seconds['swap']:.1f} s)"
-    )
+    progress(f"swap: {res.counts()} ({seconds['swap']:.1f} s)")
     mesh, swaps = res.mesh, res.swaps
     return AdaptResult(mesh, swaps, seconds, area)

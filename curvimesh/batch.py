@@ -499,6 +499,7 @@ def run_batch(
             "recurve": opt.recurve,
             "length_swaps": opt.length_swaps,
             "shift": opt.shift,
+            "remove": opt.remove,
             "fit": opt.fit,
             "straight": opt.straight,
             "format": fmt,
@@ -609,7 +610,17 @@ def summary_markdown(result: BatchResult) -> str:
 def _options_text(opts: dict) -> str:
     off = [
         f"--no-{k.replace('_', '-')}"
-        for k in ("fill", "relocate", "insert", "split", "recurve", "length_swaps", "shift", "fit")
+        for k in (
+            "fill",
+            "relocate",
+            "insert",
+            "split",
+            "recurve",
+            "length_swaps",
+            "shift",
+            "remove",
+            "fit",
+        )
         if not opts.get(k, True)
     ]
     if opts.get("straight"):

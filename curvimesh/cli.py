@@ -162,7 +162,11 @@ STAGES = (
     ("split", "No splits of long curved edges."),
     ("recurve", "No re-curving of edge nodes towards their shortest parabolas."),
     ("length_swaps", "No swaps for edge lengths (swaps for quality (4) only)."),
-    ("shift", "No vertex shifts at the edges left longer than 1.4."),
+    (
+        "shift",
+        "No vertex shifts at the edges left longer than 1.4 and at triangles of quality < 0.3.",
+    ),
+    ("remove", "No vertex removals at the triangles left below quality 0.3."),
     ("fit", "No edge nodes fitted to the function of an interpolation metric."),
 )
 
@@ -350,18 +354,15 @@ def swap(
 ) -> None:
     """Stage 4: curvilinear edge swaps driven by quality (4) and edge lengths,
     re-curving, vertex insertions and splits at the long edges, and swaps and
-    re-curving again, vertex shifts at the edges left long; for an interpolation
+    re-curving again, vertex shifts at the edges left long and the flat triangles,
+    vertex removals at the flat triangles left; for an interpolation
     metric, edge nodes fitted to its function."""
     fld = load_metric(metric_path)
     mesh = _require_triangles(_read(mesh_path, fld), mesh_path)
     if mesh.order != 2:
         raise InputError(f"{mesh_path}: swap needs a P2 (triangle6) mesh; run curve first")
     res = pipeline.swap(fld, mesh, _options(straight=straight, **stages))
-    ctx.progress(
-        f"swap: {res.swaps} swaps in {res.rounds} rounds, {res.inserted} insertions, "
-        f"{res.splits} splits, {res.recurved} re-curved nodes, {res.shifted} shifts, "
-        f"{res.fitted} fitting moves"
-    )
+    ctx.progress(f"swap: {res.counts()}")
     write_mesh(output, res.mesh, fmt=fmt)
 
 
@@ -401,11 +402,12 @@ def adapt(
 
     The stages beyond the paper's method (gap filling, vertex relocation,
     vertex insertion, edge splits, re-curving, swaps for lengths, vertex shifts,
+    vertex removals,
     and for an interpolation metric edge nodes fitted to its function) run by
     default; --no-fill, --no-relocate, --no-insert, --no-split, --no-recurve,
-    --no-length-swaps, --no-shift and --no-fit turn them off, so that the
+    --no-length-swaps, --no-shift, --no-remove and --no-fit turn them off, so that the
     paper's method alone is `--no-fill --no-relocate --no-insert --no-split
-    --no-recurve --no-length-swaps --no-shift --no-fit`.
+    --no-recurve --no-length-swaps --no-shift --no-remove --no-fit`.
     """
     fld = load_metric(metric_path)
     opt = _options(seed=seed, max_vertices=max_vertices, straight=straight, **stages)

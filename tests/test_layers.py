@@ -37,6 +37,7 @@ LAYERS = {
     "recurve": 8,
     "fit": 8,
     "shift": 8,
+    "remove": 8,
     "adapt": 9,
     "batch": 10,
     "cli": 11,

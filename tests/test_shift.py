@@ -103,3 +103,34 @@ def test_the_singular_centre_of_concentric_loses_its_long_edges():
         )
 
     assert worst(res.mesh, after) >= worst(mesh, before) - 1e-9
+
+
+def _quality(fld, mesh: Mesh) -> np.ndarray:
+    pts = np.asarray(mesh.points)
+    return quality_from(metric_areas(fld, pts[mesh.triangles]), lengths(fld, mesh)[mesh.tri_edges])
+
+
+def test_a_vertex_pushed_onto_an_edge_is_moved_off_it():
+    # the middle vertex moved 0.88 of the way down its height towards the edge ab
+    # opposite it: the triangle (v, a, b) is flat (q 0.24) and no edge is longer
+    # than 1.71; with max_length 1.8 only the quality pass can act
+    fld = load_metric_text(EUCLID)
+    mesh, v = lattice()
+    pts = np.asarray(mesh.points)
+    tri = next(t for t in mesh.triangles[:, :3] if v in t and pts[t, 1].max() <= pts[v, 1] + 1e-9)
+    a, b = (u for u in tri if u != v)
+    foot = 0.5 * (pts[a] + pts[b])
+    bad = displaced(mesh, v, 0.88 * (foot - pts[v]))
+    q0 = _quality(fld, bad)
+    assert 0.2 < q0.min() < 0.3
+    res = shift_vertices(fld, bad, max_length=1.8)
+    q1 = _quality(fld, res.mesh)
+    assert res.shifted >= 1
+    assert q1.min() > q0.min()
+    new = np.asarray(res.mesh.points)
+    # the vertex went back up, away from ab, and no edge left [shortest, 1.8]
+    assert np.hypot(*(new[v] - foot)) > np.hypot(*(np.asarray(bad.points)[v] - foot))
+    after = lengths(fld, res.mesh)
+    assert after.min() >= min(0.7, lengths(fld, bad).min()) - 1e-12
+    assert after.max() <= 1.8
+    assert valid_exact(new[res.mesh.triangles]).all()
