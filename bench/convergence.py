@@ -32,6 +32,7 @@ interrupted study keeps its results), ``convergence.png`` and
     python bench/convergence.py --full          # and 4000 .. 50 000 (many hours)
     python bench/convergence.py --vertices 500 1000 --functions f1
     python bench/convergence.py --keep-straight  # recompute the curved series only
+    python bench/convergence.py --vertices 32000 --merge  # add a level to the saved runs
 """
 
 from __future__ import annotations
@@ -300,6 +301,12 @@ def main(argv: list[str] | None = None) -> int:
         help="Keep the uniform and straight runs of OUT/convergence.json (they do not depend "
         "on the curving stages) and compute the curved series only.",
     )
+    parser.add_argument(
+        "--merge",
+        action="store_true",
+        help="Keep the runs of OUT/convergence.json at the other targets (and functions), "
+        "so that a level can be added or redone alone.",
+    )
     args = parser.parse_args(argv)
     vertices = args.vertices or (FULL_VERTICES if args.full else DEFAULT_VERTICES)
     names = args.functions or list(FUNCTIONS)
@@ -312,9 +319,15 @@ def main(argv: list[str] | None = None) -> int:
         plot(saved["runs"], out / "convergence.png")
         return 0
     results: list[dict] = []
+    old = json.loads(log.read_text())["runs"] if log.exists() else []
+    if args.merge:
+        results = [r for r in old if r["function"] not in names or r["target"] not in vertices]
     if args.keep_straight:
-        old = json.loads(log.read_text())["runs"] if log.exists() else []
-        results = [r for r in old if r["series"] in STRAIGHT_SERIES]
+        results += [
+            r
+            for r in old
+            if r["series"] in STRAIGHT_SERIES and r["function"] in names and r["target"] in vertices
+        ]
     t0 = time.perf_counter()
     uniform = (
         [] if args.keep_straight else [(run_uniform, n, v, {}) for n in names for v in vertices]
