@@ -28,13 +28,15 @@ the edges is twice the squared L2 error. Each round tries, for every edge,
 
 and keeps the best candidate that lowers E and leaves both triangles valid
 (Jacobian positive everywhere, decided exactly from its Bezier coefficients).
+A boundary edge (one triangle, on a box side) takes the tangent steps only,
+so that its node stays on the side: the curve is the same segment, but its
+parametrisation, and with it the interpolant along the side, changes.
 The improving edges are taken greedily by decreasing gain, no two in one
 triangle (each was evaluated with its neighbours' old nodes), and moved
 together, so the error never increases. Rounds stop when a round gains less
 than ``rtol`` of the total, when every step is below :data:`MIN_STEP`, or
-after ``max_rounds``. Boundary edges keep their nodes (on the box side), and
-so do edges whose two triangles interpolate f to rounding already
-(:data:`NOISE`). Moving one node at a time, the descent can stop in a local
+after ``max_rounds``. Edges whose triangles interpolate f to rounding
+already (:data:`NOISE`) keep their nodes. Moving one node at a time, the descent can stop in a local
 minimum (bends of neighbouring edges that cancel); it never raises the error.
 
 Beyond the paper (which curves for the metric only); :func:`curvimesh.adapt.swap`
@@ -92,8 +94,8 @@ def fit_nodes(
     """Move interior edge nodes to lower the interpolation error of f (module docstring).
 
     ``mesh`` is a valid P2 mesh and ``f`` maps points ``(n, 2)`` to values
-    ``(n,)``. Returns a valid P2 mesh with the same vertices, triangles and
-    boundary nodes. Deterministic.
+    ``(n,)``. Returns a valid P2 mesh with the same vertices and triangles,
+    its boundary nodes on their edges' chords. Deterministic.
     """
     pts = np.array(mesh.points)
     tris = np.asarray(mesh.triangles)
@@ -102,20 +104,21 @@ def fit_nodes(
     local = element_l2_squared(f, pts[tris], order=ERROR_ORDER)
     before = float(np.sqrt(local.sum()))
     edges, emid, et, tri_edges = mesh.edges, mesh.edge_mid, mesh.edge_tris, mesh.tri_edges
-    cand = np.flatnonzero(et[:, 1] >= 0)
-    if cand.size == 0:
-        return FitResult(mesh, 0, 0, before, before)
+    cand = np.arange(len(edges))
     x0, x1 = pts[edges[cand, 0]], pts[edges[cand, 1]]
     straight = 0.5 * (x0 + x1)
     tangent = x1 - x0  # of length ℓ: steps are relative to the edge
     normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
-    t1, t2 = et[cand, 0], et[cand, 1]
+    # a boundary edge has one triangle: t2 = t1 stands in, its error counted once
+    side = et[cand, 1] < 0
+    t1 = et[cand, 0]
+    t2 = np.where(side, t1, et[cand, 1])
     s1, s2 = 3 + local_edge(tri_edges, t1, cand), 3 + local_edge(tri_edges, t2, cand)
     # a pair whose error is at the level of rounding is left alone
     scale = float(np.abs(f(pts[np.unique(tris)])).max())
     areas = np.abs(signed_areas(pts, tris[:, :3]))
-    noise = (NOISE * scale) ** 2 * (areas[t1] + areas[t2])
-    step = np.where(local[t1] + local[t2] > noise, FIRST_STEP, 0.0)
+    noise = (NOISE * scale) ** 2 * (areas[t1] + np.where(side, 0.0, areas[t2]))
+    step = np.where(local[t1] + np.where(side, 0.0, local[t2]) > noise, FIRST_STEP, 0.0)
     moves = rounds = 0
     while rounds < max_rounds:
         live = np.flatnonzero(step >= MIN_STEP)
@@ -124,25 +127,31 @@ def fit_nodes(
         rounds += 1
         cur_mid = pts[emid[cand[live]]]
         n1, n2 = pts[tris[t1[live]]], pts[tris[t2[live]]]
-        current = local[t1[live]] + local[t2[live]]
+        one = side[live]
+        current = local[t1[live]] + np.where(one, 0.0, local[t2[live]])
         best = current.copy()
         best_mid = cur_mid.copy()
-        best_parts = np.column_stack([local[t1[live]], local[t2[live]]])
+        best_parts = np.column_stack([local[t1[live]], np.where(one, 0.0, local[t2[live]])])
         h = step[live, None]
-        tries = [straight[live] + s * (cur_mid - straight[live]) for s in SCALES]
-        tries += [cur_mid + h * d for d in (normal[live], -normal[live])]
+        inner = ~one[:, None]  # boundary nodes stay on their side: tangent steps only
+        tries = [
+            np.where(inner, straight[live] + s * (cur_mid - straight[live]), cur_mid)
+            for s in SCALES
+        ]
+        tries += [np.where(inner, cur_mid + h * d, cur_mid) for d in (normal[live], -normal[live])]
         tries += [cur_mid + h * d for d in (tangent[live], -tangent[live])]
         rows = np.arange(len(live))
         for mid in tries:
             a1, a2 = n1.copy(), n2.copy()
             a1[rows, s1[live]] = mid
             a2[rows, s2[live]] = mid
-            ok = valid_exact(a1) & valid_exact(a2)
+            ok = valid_exact(a1) & (one | valid_exact(a2))
             e1 = np.full(len(live), np.inf)
-            e2 = np.full(len(live), np.inf)
+            e2 = np.where(one, 0.0, np.inf)
             if ok.any():
                 e1[ok] = element_l2_squared(f, a1[ok], order=ERROR_ORDER)
-                e2[ok] = element_l2_squared(f, a2[ok], order=ERROR_ORDER)
+                two = ok & ~one
+                e2[two] = element_l2_squared(f, a2[two], order=ERROR_ORDER)
             total = e1 + e2
             better = total < best
             best[better] = total[better]
@@ -158,7 +167,8 @@ def fit_nodes(
         ]
         pts[emid[cand[live[k]]]] = best_mid[k]
         local[t1[live[k]]] = best_parts[k, 0]
-        local[t2[live[k]]] = best_parts[k, 1]
+        k2 = k[~one[k]]
+        local[t2[live[k2]]] = best_parts[k2, 1]
         moves += len(k)
         if gain[k].sum() < rtol * local.sum():
             break

@@ -78,9 +78,10 @@ def test_fitting_lowers_the_error_and_keeps_the_mesh_valid():
     out = res.mesh
     assert valid_exact(out.points[out.triangles]).all()
     np.testing.assert_array_equal(out.triangles, mesh.triangles)
-    # vertices and the nodes of boundary edges stay where they were
-    fixed = np.concatenate([mesh.vertex_ids, mesh.edge_mid[mesh.edge_tris[:, 1] < 0]])
+    # vertices stay where they were, and boundary nodes on their sides
+    fixed = mesh.vertex_ids
     np.testing.assert_array_equal(out.points[fixed], np.asarray(mesh.points)[fixed])
+    assert_on_sides(out)
     before, after = interpolation_error(f, mesh).l2, interpolation_error(f, out).l2
     assert after < 0.5 * before
     # the error the stage reports is the sum of its local errors
@@ -89,6 +90,37 @@ def test_fitting_lowers_the_error_and_keeps_the_mesh_valid():
     assert res.error_after <= res.error_before
     again = fit_nodes(f, mesh).mesh
     assert np.asarray(again.points).tobytes() == np.asarray(out.points).tobytes()
+
+
+def assert_on_sides(mesh: Mesh) -> None:
+    """Every boundary node lies on its edge's chord, in its middle half."""
+    lines = mesh.boundary_lines
+    pts = np.asarray(mesh.points)
+    a, b, m = pts[lines[:, 0]], pts[lines[:, 1]], pts[lines[:, 2]]
+    ab, am = b - a, m - a
+    # on a box side the chord is axis-parallel and the node keeps its coordinate
+    # across it exactly
+    across = np.where(np.abs(ab[:, 0]) > np.abs(ab[:, 1]), am[:, 1], am[:, 0])
+    assert np.all(across == 0.0)
+    t = (am * ab).sum(axis=1) / (ab * ab).sum(axis=1)
+    assert np.all((t > 0.25) & (t < 0.75))
+
+
+def test_boundary_nodes_slide_along_their_sides_to_lower_the_error():
+    # f varies along the sides y = 0 and y = 1 only through x: on the straight
+    # uniform grid the interpolant along those sides improves when their nodes
+    # move along them, and they may not leave them
+    f = compile_function("tanh(8*(x - 0.3))")
+    mesh = grid_p2(5)
+    res = fit_nodes(f, mesh)
+    out = res.mesh
+    assert res.error_after < res.error_before
+    side = mesh.edge_mid[mesh.edge_tris[:, 1] < 0]
+    pts0, pts1 = np.asarray(mesh.points), np.asarray(out.points)
+    moved = side[np.any(pts1[side] != pts0[side], axis=1)]
+    assert len(moved) > 0
+    assert_on_sides(out)
+    assert valid_exact(pts1[out.triangles]).all()
 
 
 def test_a_mesh_at_rounding_error_is_left_alone():
