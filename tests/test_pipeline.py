@@ -270,3 +270,54 @@ def test_too_close_in_blocks_matches_one_block(monkeypatch):
     monkeypatch.setattr(sampling, "PAIR_BLOCK", 37)
     assert np.array_equal(sampling.too_close(fld, a, b, 0.7), whole)
     assert 0 < whole.sum() < len(whole)
+
+
+def test_the_chord_bound_is_the_geodesic_length_along_principal_directions():
+    # constant metric of sizes 0.01 and 0.2 at 30°: the geodesics are straight, of
+    # length sqrt(dᵀ g d); the bound |d| / sqrt(νᵀ g⁻¹ ν) is at most that
+    # (Cauchy–Schwarz), equal along the two principal directions
+    from curvimesh.sampling import chord_lower_bound
+
+    fld = load_metric_text(
+        "domain: {box: [[0, 0], [1, 1]]}\nmetric: {eigen: {sizes: [0.01, 0.2], angle: pi/6}}\n"
+    )
+    g = fld.tensor(np.array([[0.5, 0.5]]))[0]
+    rng = np.random.default_rng(3)
+    a = rng.uniform(0.3, 0.7, (400, 2))
+    ang = np.concatenate([rng.uniform(0, np.pi, 398), [np.pi / 6, 2 * np.pi / 3]])
+    d = rng.uniform(0.005, 0.1, (400, 1)) * np.column_stack([np.cos(ang), np.sin(ang)])
+    exact = np.sqrt(np.einsum("ni,ij,nj->n", d, g, d))
+    bound = chord_lower_bound(fld, a, a + d)
+    assert np.all(bound <= exact * (1 + 1e-12))
+    np.testing.assert_allclose(bound[-2:], exact[-2:], rtol=1e-12)
+    assert bound[:-2].min() < 0.2 * exact[:-2].max()  # not tight off the axes
+
+
+@pytest.mark.parametrize("name", ["toy", "front", "circular_layer"])
+def test_closeness_with_the_chord_bound_is_the_parabola_decision(name):
+    # pairs at every distance and direction: pruning by the bound never changes the
+    # decision of the shortest parabola (straight segment, then the search)
+    from pathlib import Path
+
+    from curvimesh.geodesic import parabola_length_rule, shortest_parabola
+    from curvimesh.metric import load_metric
+    from curvimesh.sampling import chord_lower_bound, search_halfwidths, too_close
+
+    fld = load_metric(Path(__file__).resolve().parents[1] / "metrics" / f"{name}.yaml")
+    x0, y0, x1, y1 = fld.box
+    rng = np.random.default_rng(11)
+    a = rng.uniform([x0, y0], [x1, y1], (3000, 2))
+    reach = search_halfwidths(fld, a, 1.4)[:, :1]
+    ang = rng.uniform(0, 2 * np.pi, (3000, 1))
+    b = a + rng.uniform(0.0, 1.0, (3000, 1)) * reach * np.hstack([np.cos(ang), np.sin(ang)])
+    b = np.clip(b, [x0, y0], [x1, y1])
+    got = too_close(fld, a, b, 0.7)
+    straight = parabola_length_rule(fld, a, b, 0.5 * (a + b), segments=2, order=4)
+    par = shortest_parabola(fld, a, b, scan=5, alpha_tol=2e-3, exact_length=False)
+    want = (straight < 0.7) | (par.length < 0.7)
+    assert 0.02 < want.mean() < 0.98
+    np.testing.assert_array_equal(got, want)
+    # and the bound is below the parabola's length (the 10 % margin is not needed)
+    fine = shortest_parabola(fld, a, b, scan=41, alpha_tol=1e-5)
+    bound = chord_lower_bound(fld, a, b)
+    assert np.all(bound <= fine.length * (1 + 1e-6))
