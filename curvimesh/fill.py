@@ -22,7 +22,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from curvimesh.geodesic import shortest_parabola
+from curvimesh.geodesic import parabola_length_rule, shortest_parabola
 from curvimesh.metric import MetricField
 from curvimesh.sampling import SamplingOptions, accept_candidates
 from curvimesh.spatial import PointIndex
@@ -75,10 +75,18 @@ def fill_gaps(
         e, keys = e[fresh], keys[fresh]
         if len(e) == 0:
             break
-        par = shortest_parabola(
-            field, pts[e[:, 0]], pts[e[:, 1]], scan=5, alpha_tol=2e-3, exact_length=False
-        )
-        long = par.length > max_length
+        # the straight segment (α = 0, among the searched parabolas) bounds the
+        # shortest parabola from above: only the edges it leaves long are searched
+        a, b = pts[e[:, 0]], pts[e[:, 1]]
+        length = parabola_length_rule(field, a, b, 0.5 * (a + b), segments=2, order=5)
+        search = np.flatnonzero(length > max_length)
+        mid = 0.5 * (a + b)
+        if search.size:
+            par = shortest_parabola(
+                field, a[search], b[search], scan=5, alpha_tol=2e-3, exact_length=False
+            )
+            length[search], mid[search] = par.length, par.mid
+        long = length > max_length
         done_keys = np.union1d(done_keys, keys[~long])
         # Delaunay refinement: a triangle whose empty circumcircle (in the metric)
         # has a radius above max_length / 2 can take its circumcentre.
@@ -87,8 +95,8 @@ def fill_gaps(
         if not long.any() and not big.any():
             break
         by_radius = np.argsort(-radius[big], kind="stable")
-        by_length = np.argsort(-par.length[long], kind="stable")
-        cand = np.concatenate([centre[big][by_radius], par.mid[long][by_length]])
+        by_length = np.argsort(-length[long], kind="stable")
+        cand = np.concatenate([centre[big][by_radius], mid[long][by_length]])
         new = accept_candidates(field, index, cand, gap_opt)
         if len(new) == 0:
             break
