@@ -321,3 +321,28 @@ def test_closeness_with_the_chord_bound_is_the_parabola_decision(name):
     fine = shortest_parabola(fld, a, b, scan=41, alpha_tol=1e-5)
     bound = chord_lower_bound(fld, a, b)
     assert np.all(bound <= fine.length * (1 + 1e-6))
+
+
+def test_a_side_node_is_kept_where_its_triangle_can_be_valid():
+    # density 1 + 1000 x⁸ along the side y = 0: the point halving the metric length
+    # of [0, 1] is at x = 0.925, where no triangle on that edge can be valid (its
+    # Jacobian 2A (1 + 4δ (1 − 2ξ − η)) changes sign for |δ| > 1/4); the node is
+    # kept at 0.7 and the triangle is valid
+    from curvimesh.bezier import valid_exact
+    from curvimesh.curve import SIDE_NODE_RANGE, curve
+
+    fld = load_metric_text(
+        "domain: {box: [[0, 0], [1, 1]]}\nmetric: {isotropic: 1/(1 + 1000*x**8)}\n"
+    )
+    half = halving_points(fld, np.array([[0.0, 0.0]]), np.array([[1.0, 0.0]]))[0]
+    # ∫₀ˣ (1 + 1000 t⁸) dt = x + 1000 x⁹ / 9, half of its value at 1
+    from scipy.optimize import brentq
+
+    exact = brentq(lambda x: x + 1000 * x**9 / 9 - (1 + 1000 / 9) / 2, 0, 1)
+    assert half[0] == pytest.approx(exact, abs=2e-3)
+    assert exact > 0.9
+    mesh = Mesh(np.array([[0.0, 0.0], [1.0, 0.0], [0.5, 0.5]]), [[0, 1, 2]], (0, 0, 1, 1))
+    p2 = curve(fld, mesh)
+    side = p2.edge_mid[np.flatnonzero((p2.edges == [0, 1]).all(axis=1))[0]]
+    np.testing.assert_array_equal(p2.points[side], [SIDE_NODE_RANGE[1], 0.0])
+    assert valid_exact(np.asarray(p2.points)[p2.triangles]).all()
