@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from curvimesh.boundary import BoundaryMesh
 from curvimesh.geodesic import (
-    bisector_normal,
+    chord_lower_bound,
     parabola_length_rule,
     shoot,
     shortest_parabola,
@@ -101,21 +101,6 @@ def search_halfwidths(field: MetricField, pts: NDArray, radius: float) -> NDArra
 #: whatever the number of pairs (millions in the gap filling of a 10⁵-vertex mesh).
 PAIR_BLOCK = 32_768
 
-#: Points (t, s) ↦ a + t (b − a) + s (b − a)×e₃ where :func:`_too_close_block` samples
-#: the metric of a pair: the ends, the chord's quarter points and middle, and the
-#: middle nodes of offset ±1/4 and ±1/2 (the extreme parabolas searched).
-PROBES = (
-    (0.0, 0.0),
-    (1.0, 0.0),
-    (0.25, 0.0),
-    (0.5, 0.0),
-    (0.75, 0.0),
-    (0.5, 0.25),
-    (0.5, -0.25),
-    (0.5, 0.5),
-    (0.5, -0.5),
-)
-
 
 def too_close(field: MetricField, a: NDArray, b: NDArray, min_dist: float) -> NDArray:
     """Whether the shortest parabola between rows of a and b is shorter than min_dist ``(p,)``.
@@ -127,34 +112,6 @@ def too_close(field: MetricField, a: NDArray, b: NDArray, min_dist: float) -> ND
         rows = slice(start, start + PAIR_BLOCK)
         close[rows] = _too_close_block(field, a[rows], b[rows], min_dist)
     return close
-
-
-def chord_lower_bound(field: MetricField, a: NDArray, b: NDArray) -> NDArray:
-    """A lower bound ``(p,)`` of the metric length of the parabolas from a to b, |α| ≤ 1/2.
-
-    With ν the unit vector along d = b − a, x′ᵀ g x′ ≥ μ (x′·ν)² for every x′
-    holds with μ = 1 / (νᵀ g⁻¹ ν) (the largest such μ for an SPD g), so a curve
-    from a to b is at least |d| / max h_ν long, h_ν(x) = sqrt(νᵀ g(x)⁻¹ ν) the
-    support size of the metric ball along ν, the maximum taken over the curve.
-    It is taken over :data:`PROBES`, points of the lens swept by the parabolas.
-    In a constant metric the bound is |d| / sqrt(νᵀ g⁻¹ ν) ≤ sqrt(dᵀ g d) (the
-    geodesic's length, Cauchy–Schwarz), with equality when d is along a
-    principal direction.
-    """
-    d = b - a
-    chord = np.hypot(d[:, 0], d[:, 1])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        nu = d / chord[:, None]
-    nrm = bisector_normal(a, b)
-    probes = np.concatenate([a + t * d + s * nrm for t, s in PROBES])
-    g = field.tensor(probes, check=False).reshape(len(PROBES), -1, 2, 2)
-    g11, g12, g22 = g[..., 0, 0], g[..., 0, 1], g[..., 1, 1]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        # νᵀ g⁻¹ ν = (g22 νx² − 2 g12 νx νy + g11 νy²) / det g
-        support = (g22 * nu[:, 0] ** 2 - 2 * g12 * nu[:, 0] * nu[:, 1] + g11 * nu[:, 1] ** 2) / (
-            g11 * g22 - g12**2
-        )
-        return chord / np.sqrt(support.max(axis=0))
 
 
 def _too_close_block(field: MetricField, a: NDArray, b: NDArray, min_dist: float) -> NDArray:

@@ -276,7 +276,7 @@ def test_the_chord_bound_is_the_geodesic_length_along_principal_directions():
     # constant metric of sizes 0.01 and 0.2 at 30°: the geodesics are straight, of
     # length sqrt(dᵀ g d); the bound |d| / sqrt(νᵀ g⁻¹ ν) is at most that
     # (Cauchy–Schwarz), equal along the two principal directions
-    from curvimesh.sampling import chord_lower_bound
+    from curvimesh.geodesic import chord_lower_bound
 
     fld = load_metric_text(
         "domain: {box: [[0, 0], [1, 1]]}\nmetric: {eigen: {sizes: [0.01, 0.2], angle: pi/6}}\n"
@@ -299,9 +299,9 @@ def test_closeness_with_the_chord_bound_is_the_parabola_decision(name):
     # decision of the shortest parabola (straight segment, then the search)
     from pathlib import Path
 
-    from curvimesh.geodesic import parabola_length_rule, shortest_parabola
+    from curvimesh.geodesic import chord_lower_bound, parabola_length_rule, shortest_parabola
     from curvimesh.metric import load_metric
-    from curvimesh.sampling import chord_lower_bound, search_halfwidths, too_close
+    from curvimesh.sampling import search_halfwidths, too_close
 
     fld = load_metric(Path(__file__).resolve().parents[1] / "metrics" / f"{name}.yaml")
     x0, y0, x1, y1 = fld.box
