@@ -33,7 +33,7 @@ sample-runs: $(STAMP)
 	$(BIN)/python bench/ablation.py metrics/*.yaml --out sample_runs --jobs 2
 
 convergence: $(STAMP)
-	$(BIN)/python bench/convergence.py --out sample_runs --vertices 500 1000 2000 4000 8000 16000 32000
+	$(BIN)/python bench/convergence.py --out sample_runs --vertices 500 1000 2000 4000 8000 16000 32000 50000
 
 clean:
 	rm -rf $(VENV) out .pytest_cache
