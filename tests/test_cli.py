@@ -183,6 +183,7 @@ def test_check_metric_prints_the_ideal_count():
         ("--no-recurve",),
         ("--no-length-swaps",),
         ("--no-shift",),
+        ("--no-remove",),
         (
             "--no-fill",
             "--no-relocate",
@@ -191,6 +192,7 @@ def test_check_metric_prints_the_ideal_count():
             "--no-recurve",
             "--no-length-swaps",
             "--no-shift",
+            "--no-remove",
         ),
     ],
 )
