@@ -239,6 +239,38 @@ def _wedge(
     return None
 
 
+#: Lengthenings tried at a corner whose cross edge the field makes short.
+CORNER_RETRIES = 8
+
+
+def _checked_corner(
+    field: MetricField, tables, k: int, length: float, bounds: tuple[float, float, float]
+) -> tuple[float, tuple[NDArray, NDArray] | None]:
+    """The corner edge length at corner ``k``, its cross edge measured in the field.
+
+    :func:`corner_edge_lengths` works in the metric of the corner; over the
+    corner's two edges the field can shorten the cross edge between their far
+    ends below ``min_dist`` (0.678 at a corner of 36°, seen in a hypothesis
+    run). The edges are then lengthened by the shortfall (and 2 %), up to
+    ``max_length``; a corner that needs more gets the staggering of
+    :func:`_wedge` (None if that fails too). Returns the length and the
+    staggering (None when plain edges do).
+    """
+    target, min_dist, max_length = bounds
+    for _ in range(CORNER_RETRIES):
+        first = _at_distance(field, tables, k, np.array([length]), backwards=False)
+        second = _at_distance(field, tables, (k - 1) % 4, np.array([length]), backwards=True)
+        cross = float(shortest_parabola(field, first, second).length[0])
+        if cross >= min_dist:
+            return length, None
+        length *= 1.02 * min_dist / cross
+        if length > max_length:
+            break
+    angle = float(corner_angles(field)[k])
+    wedge = _wedge(field, tables, k, angle, target, min_dist, max_length)
+    return min(length, max_length), wedge
+
+
 def discretize_box(
     field: MetricField, *, target: float = 1.0, min_dist: float = 0.7, max_length: float = 1.5
 ) -> BoundaryMesh:
@@ -254,6 +286,11 @@ def discretize_box(
     at_corner = corner_edge_lengths(field, target=target, min_dist=min_dist, max_length=max_length)
     tables = _side_tables(field)
     wedges = _wedges(field, tables, target, min_dist, max_length)
+    for k in range(4):
+        if wedges[k] is None:
+            at_corner[k], wedges[k] = _checked_corner(
+                field, tables, k, float(at_corner[k]), (target, min_dist, max_length)
+            )
     verts, mids, sides = [], [], []
     for k in range(4):
         a, b = corners[k], corners[(k + 1) % 4]

@@ -166,6 +166,13 @@ metric:
     wave=0.4885071274240539,
     freq=2.5860570947534294,
 )
+@example(  # a corner of 36°: the field shortened its cross edge to 0.678 in the corner's design
+    h1=0.30048985323087063,
+    ratio=5.901516646408005,
+    angle=-2.843877772660331,
+    wave=0.4538249106756846,
+    freq=0.8894459120056435,
+)
 def test_any_smooth_metric_gives_a_valid_conforming_mesh(h1, ratio, angle, wave, freq):
     text = f"""
 domain: {{box: [[0, 0], [2, 1.5]]}}
