@@ -22,7 +22,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from curvimesh.geodesic import parabola_length_rule, shortest_parabola
+from curvimesh.geodesic import bounded_lengths
 from curvimesh.metric import MetricField
 from curvimesh.sampling import SamplingOptions, accept_candidates
 from curvimesh.spatial import PointIndex
@@ -75,17 +75,9 @@ def fill_gaps(
         e, keys = e[fresh], keys[fresh]
         if len(e) == 0:
             break
-        # the straight segment (α = 0, among the searched parabolas) bounds the
-        # shortest parabola from above: only the edges it leaves long are searched
-        a, b = pts[e[:, 0]], pts[e[:, 1]]
-        length = parabola_length_rule(field, a, b, 0.5 * (a + b), segments=2, order=5)
-        search = np.flatnonzero(length > max_length)
-        mid = 0.5 * (a + b)
-        if search.size:
-            par = shortest_parabola(
-                field, a[search], b[search], scan=5, alpha_tol=2e-3, exact_length=False
-            )
-            length[search], mid[search] = par.length, par.mid
+        # the straight segment bounds the shortest parabola from above: only the
+        # edges it leaves long are searched
+        length, mid = bounded_lengths(field, pts[e[:, 0]], pts[e[:, 1]], long=max_length)
         long = length > max_length
         done_keys = np.union1d(done_keys, keys[~long])
         # Delaunay refinement: a triangle whose empty circumcircle (in the metric)

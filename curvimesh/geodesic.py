@@ -454,3 +454,55 @@ def chord_lower_bound(field: MetricField, a: NDArray, b: NDArray) -> NDArray:
             g11 * g22 - g12**2
         )
         return chord / np.sqrt(support.max(axis=0))
+
+
+#: A pair whose :func:`chord_lower_bound` is at least this times a length is taken
+#: to be no shorter (10 % for the metric between the bound's probes).
+LOWER_BOUND_MARGIN = 1.1
+
+
+def bounded_lengths(
+    field: MetricField,
+    a: NDArray,
+    b: NDArray,
+    *,
+    short: float | None = None,
+    long: float | NDArray | None = None,
+    straight_order: int = 5,
+) -> tuple[NDArray, NDArray]:
+    """Shortest-parabola lengths ``(p,)`` and middle nodes ``(p, 2)`` from a to b,
+    searched only where bounds leave open whether a length is below ``short``
+    or above ``long`` (a number, or one per pair).
+
+    Elsewhere a bound on the same side of both stands, with the chord's
+    midpoint: the straight segment's length (α = 0, an upper bound; its Gauss
+    rule of order ``straight_order``, 5 being the search's own) or, when only
+    ``short`` is asked, :func:`chord_lower_bound` where it is at least
+    :data:`LOWER_BOUND_MARGIN` × short (the straight length is then not
+    computed). The search is :func:`shortest_parabola` with a 5-value scan
+    and α to 2e-3 (the lengths of its fixed rule).
+    """
+    n = len(a)
+    mid = 0.5 * (a + b)
+    length = np.empty(n)
+    far = np.zeros(n, dtype=bool)
+    if short is not None:
+        lower = chord_lower_bound(field, a, b)
+        far = lower >= LOWER_BOUND_MARGIN * short
+        if long is None:
+            length[far] = lower[far]
+    rows = np.flatnonzero(~far) if long is None else np.arange(n)
+    upper = parabola_length_rule(
+        field, a[rows], b[rows], mid[rows], segments=2, order=straight_order
+    )
+    length[rows] = upper
+    search = np.zeros(n, dtype=bool)
+    if long is not None:
+        search |= length > long
+    if short is not None:
+        search[rows] |= (upper >= short) & ~far[rows]
+    s = np.flatnonzero(search)
+    if s.size:
+        par = shortest_parabola(field, a[s], b[s], scan=5, alpha_tol=2e-3, exact_length=False)
+        length[s], mid[s] = par.length, par.mid
+    return length, mid

@@ -181,6 +181,13 @@ class Mesh:
         return _readonly(np.flatnonzero(self.edge_tris[:, 1] < 0))
 
     @cached_property
+    def boundary_vertices(self) -> NDArray[np.bool_]:
+        """``(n,)`` True for the nodes that end a boundary edge."""
+        mask = np.zeros(len(self.points), dtype=bool)
+        mask[self.edges[self.boundary_edges].ravel()] = True
+        return _readonly(mask)
+
+    @cached_property
     def boundary_lines(self) -> NDArray[np.int64]:
         """``(nb, 2)`` (P1) or ``(nb, 3)`` (P2) node ids of each boundary edge.
 

@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from curvimesh.bezier import valid_exact
-from curvimesh.geodesic import shortest_parabola
+from curvimesh.geodesic import parabola_length, shortest_parabola
 from curvimesh.mesh import Mesh, rotate_triangles, signed_areas
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths, metric_areas, quality_from
@@ -119,8 +119,7 @@ def remove_vertices(
         return RemoveResult(mesh, 0)
     length = edge_lengths(field, mesh.points, mesh.edges, mesh.edge_mid)
     quality = quality_from(metric_areas(field, mesh.points[mesh.triangles]), length[mesh.tri_edges])
-    fixed = np.zeros(len(mesh.points), dtype=bool)
-    fixed[mesh.edges[mesh.boundary_edges].ravel()] = True
+    fixed = mesh.boundary_vertices
     pts = [np.asarray(mesh.points)]
     n_pts = len(mesh.points)
     tris = np.array(mesh.triangles)
@@ -233,18 +232,21 @@ def _best_triangulation(
                 continue
             optimal = par.mid
         tri_ids = _triangle_nodes(triangulation, ring, ring_nodes, diagonals)
+        new_node = tri_ids < 0
+        nodes = points[np.where(new_node, 0, tri_ids)]  # (n − 2, 6, 2); new nodes set below
         for frac in BACKTRACK:
             mids = 0.5 * (a + b) + frac * (optimal - 0.5 * (a + b))
-            all_pts = np.concatenate([points, mids])
-            local = np.where(tri_ids < 0, len(points) - 1 - tri_ids, tri_ids)
-            nodes = all_pts[local]
+            nodes[new_node] = mids[-1 - tri_ids[new_node]]
             if not valid_exact(nodes).all():
                 continue
-            pairs = np.stack([local[:, [0, 1]], local[:, [1, 2]], local[:, [2, 0]]], axis=1)
-            lens = edge_lengths(
-                field, all_pts, pairs.reshape(-1, 2), local[:, 3:].reshape(-1)
+            # edges 01, 12, 20 of each triangle through their nodes 3, 4, 5
+            lens = parabola_length(
+                field,
+                nodes[:, [0, 1, 2]].reshape(-1, 2),
+                nodes[:, [1, 2, 0]].reshape(-1, 2),
+                nodes[:, 3:].reshape(-1, 2),
             ).reshape(-1, 3)
-            new = lens[(tri_ids[:, 3:] < 0)]
+            new = lens[new_node[:, 3:]]
             if (new < min_dist).any() or (new > max_length).any():
                 break
             q = float(quality_from(metric_areas(field, nodes), lens).min())

@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from curvimesh.boundary import BoundaryMesh
 from curvimesh.geodesic import (
-    chord_lower_bound,
+    bounded_lengths,
     parabola_length_rule,
     shoot,
     shortest_parabola,
@@ -118,7 +118,7 @@ def _too_close_block(field: MetricField, a: NDArray, b: NDArray, min_dist: float
     """:func:`too_close` on one block of pairs.
 
     A pair is far without more work when :func:`chord_lower_bound` is at least
-    1.1 min_dist (10 % for the metric between the probes). The bound is tight
+    1.1 min_dist (:func:`bounded_lengths`). The bound is tight
     where the pair lies along a principal direction, as the pairs of
     Algorithm 1 do: against |d| times the largest size 1/sqrt(λ_min(g)) it
     spares 26 to 75 % of the parabola searches on eight example and test
@@ -133,25 +133,10 @@ def _too_close_block(field: MetricField, a: NDArray, b: NDArray, min_dist: float
     where it drops from 3 to 0.6 (the chord crosses the layer, the parabola
     follows it).
     """
-    close = np.zeros(len(a), dtype=bool)
     if len(a) == 0:
-        return close
-    lower = chord_lower_bound(field, a, b)
-    todo = np.flatnonzero(~(lower >= 1.1 * min_dist))
-    if todo.size == 0:
-        return close
-    a, b = a[todo], b[todo]
-    sub = np.zeros(len(todo), dtype=bool)
-    straight = parabola_length_rule(field, a, b, 0.5 * (a + b), segments=2, order=4)
-    sub[:] = straight < min_dist
-    maybe = np.flatnonzero(~sub)
-    if maybe.size:
-        par = shortest_parabola(
-            field, a[maybe], b[maybe], scan=5, alpha_tol=2e-3, exact_length=False
-        )
-        sub[maybe] = par.length < min_dist
-    close[todo] = sub
-    return close
+        return np.zeros(0, dtype=bool)
+    length, _ = bounded_lengths(field, a, b, short=min_dist, straight_order=4)
+    return length < min_dist
 
 
 def _boundary_distance(field: MetricField, pts: NDArray) -> NDArray:

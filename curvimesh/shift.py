@@ -124,8 +124,7 @@ def shift_vertices(
     length = edge_lengths(field, pts, edges, mesh.edge_mid)
     quality = quality_from(metric_areas(field, pts[mesh.triangles]), length[mesh.tri_edges])
     floor = max(min_quality, float(quality.min()))
-    fixed = np.zeros(len(pts), dtype=bool)
-    fixed[edges[mesh.boundary_edges].ravel()] = True
+    fixed = mesh.boundary_vertices
     shifted = passes = 0
     while passes < max_passes:
         passes += 1
@@ -142,7 +141,6 @@ def shift_vertices(
                 rule = _Rule(
                     shortest=min(min_dist, float(old.min())),
                     longest=float(old.max()),
-                    strict_longest=True,
                     q_min=q_min,
                     by_quality=False,
                 )
@@ -199,7 +197,6 @@ def _quality_pass(
             rule = _Rule(
                 shortest=min(min_dist, float(old.min())),
                 longest=max(max_length, float(old.max())),
-                strict_longest=False,
                 q_min=float(quality[star.tris].min()),
                 by_quality=True,
             )
@@ -217,20 +214,21 @@ def _quality_pass(
 
 @dataclass(frozen=True)
 class _Rule:
-    """What a move must do: keep the star's edges in [shortest, longest] (the
-    longest strictly shorter than now if ``strict_longest``), and its worst
-    quality at least ``q_min`` (above it if ``by_quality``); the best move has
-    the shortest longest edge, or the best worst quality if ``by_quality``."""
+    """What a move must do. A move for a long edge (not ``by_quality``) keeps the
+    star's edges at least ``shortest`` and its longest strictly below
+    ``longest`` (the longest now), and its worst quality at least ``q_min``;
+    the best has the shortest longest edge. A move for quality keeps the edges
+    in [shortest, longest] and raises the worst quality above ``q_min``; the
+    best has the best worst quality."""
 
     shortest: float
     longest: float
-    strict_longest: bool
     q_min: float
     by_quality: bool
 
     def lengths_ok(self, lens: NDArray) -> NDArray:
         top = lens.max(axis=-1)
-        below = top < self.longest if self.strict_longest else top <= self.longest
+        below = top <= self.longest if self.by_quality else top < self.longest
         return below & (lens.min(axis=-1) >= self.shortest)
 
     def quality_ok(self, q: NDArray) -> bool:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from curvimesh.geodesic import chord_lower_bound, parabola_length_rule, shortest_parabola
+from curvimesh.geodesic import bounded_lengths, shortest_parabola
 from curvimesh.mesh import Mesh, signed_areas
 from curvimesh.metric import MetricField
 from curvimesh.triangulate import metric_delaunay
@@ -118,18 +118,12 @@ def _update_bad(
     rows = rows[is_moved[edges[rows]].any(axis=1)]
     if rows.size == 0:
         return
-    # bounds first: the straight segment (α = 0, one of the searched parabolas)
-    # bounds the shortest parabola from above, the chord bound from below; the
-    # parabola is searched only where they leave the answer open
-    a, b = pts[edges[rows, 0]], pts[edges[rows, 1]]
-    longest = np.inf if old_length is None else np.maximum(max_length, old_length[rows])
-    upper = parabola_length_rule(field, a, b, 0.5 * (a + b), segments=2, order=5)
-    maybe_short = (upper >= min_dist) & ~(chord_lower_bound(field, a, b) >= 1.1 * min_dist)
-    search = np.flatnonzero(maybe_short | (upper > longest))
-    length = upper
-    if search.size:
-        length[search] = edge_parabola_lengths(field, pts, edges[rows[search]])
-    bad[rows] = (length < min_dist) | (length > longest)
+    # the parabola is searched only where the bounds leave the answer open
+    longest = None if old_length is None else np.maximum(max_length, old_length[rows])
+    length, _ = bounded_lengths(
+        field, pts[edges[rows, 0]], pts[edges[rows, 1]], short=min_dist, long=longest
+    )
+    bad[rows] = (length < min_dist) | (length > (np.inf if longest is None else longest))
 
 
 def relocate(
