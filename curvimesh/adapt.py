@@ -60,6 +60,22 @@ class AdaptOptions:
     fit: bool = True
 
 
+#: The stages beyond the paper's method, by their :class:`AdaptOptions` field, in
+#: pipeline order: the first two build and triangulate the point cloud, the others
+#: run in the swap stage.
+STAGES = (
+    "fill",
+    "relocate",
+    "insert",
+    "split",
+    "recurve",
+    "length_swaps",
+    "shift",
+    "remove",
+    "fit",
+)
+
+
 def estimated_vertices(metric_area: float) -> float:
     """Vertices of an ideal unit mesh: half its triangle count, metric_area / (√3/4) / 2."""
     return metric_area / UNIT_TRIANGLE_AREA / 2.0

@@ -492,15 +492,7 @@ def run_batch(
         tuple(gates),
         {
             "seed": opt.seed,
-            "fill": opt.fill,
-            "relocate": opt.relocate,
-            "insert": opt.insert,
-            "split": opt.split,
-            "recurve": opt.recurve,
-            "length_swaps": opt.length_swaps,
-            "shift": opt.shift,
-            "remove": opt.remove,
-            "fit": opt.fit,
+            **{name: getattr(opt, name) for name in pipeline.STAGES},
             "straight": opt.straight,
             "format": fmt,
             "jobs": jobs,
@@ -608,21 +600,7 @@ def summary_markdown(result: BatchResult) -> str:
 
 
 def _options_text(opts: dict) -> str:
-    off = [
-        f"--no-{k.replace('_', '-')}"
-        for k in (
-            "fill",
-            "relocate",
-            "insert",
-            "split",
-            "recurve",
-            "length_swaps",
-            "shift",
-            "remove",
-            "fit",
-        )
-        if not opts.get(k, True)
-    ]
+    off = [f"--no-{k.replace('_', '-')}" for k in pipeline.STAGES if not opts.get(k, True)]
     if opts.get("straight"):
         off.append("--straight")
     return f"seed {opts.get('seed', 0)}, " + (" ".join(off) if off else "every stage on")

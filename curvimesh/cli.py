@@ -153,22 +153,24 @@ def _options(
     return pipeline.AdaptOptions(seed=seed, max_vertices=max_vertices, straight=straight, **stages)
 
 
-#: The stages beyond the paper's method, in pipeline order: the AdaptOptions field
-#: (the flag is --no-FIELD) and the flag's help.
-STAGES = (
-    ("fill", "No gap filling after Algorithm 1."),
-    ("relocate", "No vertex relocation."),
-    ("insert", "No vertex insertions at long curved edges."),
-    ("split", "No splits of long curved edges."),
-    ("recurve", "No re-curving of edge nodes towards their shortest parabolas."),
-    ("length_swaps", "No swaps for edge lengths (swaps for quality (4) only)."),
-    (
-        "shift",
-        "No vertex shifts at the edges left longer than 1.4 and at triangles of quality < 0.3.",
+#: The help of each stage's flag --no-FIELD (FIELD its AdaptOptions field).
+STAGE_HELP = {
+    "fill": "No gap filling after Algorithm 1.",
+    "relocate": "No vertex relocation.",
+    "insert": "No vertex insertions at long curved edges.",
+    "split": "No splits of long curved edges.",
+    "recurve": "No re-curving of edge nodes towards their shortest parabolas.",
+    "length_swaps": "No swaps for edge lengths (swaps for quality (4) only).",
+    "shift": (
+        "No vertex shifts at the edges left longer than 1.4 and at triangles of quality < 0.3."
     ),
-    ("remove", "No vertex removals at the triangles left below quality 0.3."),
-    ("fit", "No edge nodes fitted to the function of an interpolation metric."),
-)
+    "remove": "No vertex removals at the triangles left below quality 0.3.",
+    "fit": "No edge nodes fitted to the function of an interpolation metric.",
+}
+
+#: The stages beyond the paper's method (:data:`curvimesh.adapt.STAGES`, in pipeline
+#: order) with their flags' help.
+STAGES = tuple((name, STAGE_HELP[name]) for name in pipeline.STAGES)
 
 #: The stages run by the swap stage (``curvimesh swap``).
 SWAP_STAGES = tuple(name for name, _ in STAGES[2:])
