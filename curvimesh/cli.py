@@ -28,10 +28,13 @@ from curvimesh.geodesic import parabola_length, shoot, shortest_parabola
 from curvimesh.interpolation import compile_function
 from curvimesh.io import FORMATS, atomic_output, check_writable, read_mesh, write_mesh
 from curvimesh.metric import (
+    MAX_FRAME_TURN,
+    TURN_MIN_ANISOTROPY,
     UNIT_TRIANGLE_AREA,
     MetricField,
     density_integral,
     load_metric,
+    sharpest_turn,
 )
 from curvimesh.report import format_report, mesh_report
 
@@ -233,7 +236,7 @@ def check_metric(ctx: Context, metric_path: str) -> None:
     g = fld.tensor(pts)
     w = np.linalg.eigvalsh(g)
     sizes = 1.0 / np.sqrt(w)
-    aniso = sizes[:, 1] / sizes[:, 0]
+    aniso = sizes.max(axis=1) / sizes.min(axis=1)
     area = density_integral(fld)
     ideal = area / UNIT_TRIANGLE_AREA
     xmin, ymin, xmax, ymax = fld.box
@@ -246,7 +249,34 @@ def check_metric(ctx: Context, metric_path: str) -> None:
         f"metric area {area:.6g}",
         f"ideal triangles {ideal:.1f} (about {pipeline.estimated_vertices(area):.0f} vertices)",
     ]
+    sharpest = sharpest_turn(fld)
+    turn, (px, py), _ = sharpest
+    where = f" at ({px:.6g}, {py:.6g})" if turn > 0 else ""
+    lines.append(
+        f"turning     {math.degrees(turn):.3g} deg per unit length{where}"
+        f" (where anisotropy >= {TURN_MIN_ANISOTROPY:g})"
+    )
     click.echo("\n".join(lines))
+    _warn_turn(ctx, fld, sharpest)
+
+
+def _warn_turn(ctx: Context, fld: MetricField, sharpest: tuple | None = None) -> None:
+    """Warn on stderr where the metric's directions turn too fast for unit edges."""
+    turn, (px, py), h = sharpest if sharpest is not None else sharpest_turn(fld)
+    if turn <= MAX_FRAME_TURN or ctx.quiet:
+        return
+    if turn < 2 * math.pi:
+        what = f"turn {math.degrees(turn):.0f} deg"
+        cure = f"; a long size below {h * MAX_FRAME_TURN / turn:.3g} there (now {h:.3g})"
+        cure += " would let them"
+    else:  # a singular point such as the centre of concentric directions
+        what, cure = "turn more than a full circle", ""
+    click.echo(
+        f"curvimesh: warning: {fld.source}: the metric's directions {what} within one unit "
+        f"length near ({px:.3g}, {py:.3g}); unit edges cannot follow them there "
+        f"(expect edges over 1.4){cure}",
+        err=True,
+    )
 
 
 @main.command()
@@ -412,6 +442,7 @@ def adapt(
     --no-recurve --no-length-swaps --no-shift --no-remove --no-fit`.
     """
     fld = load_metric(metric_path)
+    _warn_turn(ctx, fld)
     opt = _options(seed=seed, max_vertices=max_vertices, straight=straight, **stages)
     t0 = time.perf_counter()
     res = pipeline.adapt(fld, opt, progress=ctx.progress)

@@ -443,6 +443,59 @@ def smallest_eigenvalue(g: NDArray) -> NDArray:
         return (a * c - b * b) / top
 
 
+#: Anisotropy below which :func:`frame_turn` ignores the principal directions:
+#: a nearly round unit ball has no direction for edges to follow.
+TURN_MIN_ANISOTROPY = 10.0
+
+
+def frame_turn(g: NDArray, dg: NDArray, *, min_anisotropy: float = TURN_MIN_ANISOTROPY) -> NDArray:
+    """How far the principal directions turn over one unit of metric length ``(n,)``, radians.
+
+    With a = g₁₁ − g₂₂ and b = 2 g₁₂, the eigenvectors of g make the angle
+    φ = ½ atan2(b, a) with the axes, so ∇φ = (a ∇b − b ∇a) / (2 (a² + b²)).
+    A unit step along eigenvector eᵢ is hᵢ eᵢ in the plane (hᵢ = λᵢ^(-1/2)),
+    over which the frame turns by |∇φ · eᵢ| hᵢ; the larger of the two is
+    returned. Where it passes about one radian the directions change within
+    one unit edge: a front curving more tightly than its own long size, which
+    no unit edge can follow (the paper's method assumes a metric that varies
+    slowly on the scale of its unit ball). Zero where the anisotropy
+    h_max / h_min is below ``min_anisotropy`` or g is isotropic.
+
+    ``g`` is ``(n, 2, 2)`` and ``dg[p, i, j, k] = ∂g_ij/∂x_k`` ``(n, 2, 2, 2)``.
+    """
+    a = g[:, 0, 0] - g[:, 1, 1]
+    b = 2.0 * g[:, 0, 1]
+    da = dg[:, 0, 0, :] - dg[:, 1, 1, :]
+    db = 2.0 * dg[:, 0, 1, :]
+    lam, vec = np.linalg.eigh(g)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        grad = (a[:, None] * db - b[:, None] * da) / (2.0 * (a * a + b * b))[:, None]
+        turn = np.abs(np.einsum("nk,nki->ni", grad, vec)) / np.sqrt(lam)
+        anisotropic = np.sqrt(lam[:, 1] / lam[:, 0]) >= min_anisotropy
+    out = np.where(anisotropic, turn.max(axis=1), 0.0)
+    return np.where(np.isfinite(out), out, 0.0)
+
+
+#: Turn (radians) of the principal directions within one unit length above
+#: which :func:`sharpest_turn` callers warn. Measured, not derived: every metric
+#: of metrics/ turns at most 57° and meshes to the targets; a cosine front with
+#: long size 0.08 and radius of curvature 0.056 turns 81° and leaves edges
+#: up to 4 long (sample_runs/README, "Where it still fails").
+MAX_FRAME_TURN = math.radians(60.0)
+
+
+def sharpest_turn(field_: MetricField, n: int = 129) -> tuple[float, NDArray, float]:
+    """The largest :func:`frame_turn` on an n×n grid of the box.
+
+    Returns (turn in radians, the grid point, the long size h_max there).
+    """
+    pts = field_.sample_points(n)
+    g, dg = field_.evaluate(pts, derivatives=True)
+    turn = frame_turn(g, dg)
+    i = int(np.argmax(turn))
+    return float(turn[i]), pts[i], float(1.0 / np.sqrt(smallest_eigenvalue(g[i : i + 1])[0]))
+
+
 def _finite_rows(arr: NDArray) -> NDArray:
     """Whether all entries of each row of ``arr`` ``(n, 2, 2)`` or ``(n, 2, 2, 2)`` are finite.
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import meshio
@@ -213,3 +214,48 @@ def test_stage_flags_give_the_library_mesh_with_those_stages_off(workdir, flags)
     got = read_mesh(out)
     np.testing.assert_allclose(got.points, want.points, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(got.triangles, want.triangles)
+
+
+def test_check_metric_prints_size_and_anisotropy_ranges():
+    """Toy metric (SPEC): sizes lmin = 0.01 + 0.3 (1 - exp(-((r - 0.5)/h)²)) across
+    and 0.3 along. The grid of [-2, 2]² (spacing 1/32) has points on the ring r = 0.5,
+    where lmin = 0.01 (anisotropy 30), and far corners where lmin → 0.31; lmin passes
+    0.3 on a ring between, where the metric is isotropic (anisotropy 1)."""
+    toy = Path(__file__).resolve().parent.parent / "metrics" / "toy.yaml"
+    r = CliRunner().invoke(main, ["check-metric", str(toy)])
+    assert r.exit_code == 0, r.output
+    lines = dict(line.split(None, 1) for line in r.stdout.splitlines())
+    lo, hi = (float(v) for v in lines["anisotropy"].split(".."))
+    assert 1 <= lo < 1.001 and math.isclose(hi, 30, rel_tol=1e-5)
+    lo, hi = (float(v) for v in lines["size"].split(".."))
+    assert math.isclose(lo, 0.01, rel_tol=1e-5) and math.isclose(hi, 0.31, rel_tol=1e-4)
+    assert lines["turning"].endswith("(where anisotropy >= 10)")
+    assert "warning" not in r.stderr
+
+
+def test_directions_turning_within_a_unit_length_are_warned_of(tmp_path):
+    """Rings around the origin, sizes 0.04 across and 0.8 along: at radius r the
+    directions turn 0.8 / r radians per unit length, 4 rad (229 degrees) at the
+    box's nearest point (0.2, 0); a long size of 0.8 · (pi/3) / 4 = 0.209 would
+    bring that to the 60 degrees unit edges can follow. Around a centre inside
+    the box they turn without bound."""
+    metric = tmp_path / "rings.yaml"
+    rings = "metric: {eigen: {sizes: [0.04, 0.8], angle: 'atan2(y, x)'}}\n"
+    metric.write_text("domain: {box: [[0.2, -0.5], [1, 0.5]]}\n" + rings)
+    r = CliRunner().invoke(main, ["check-metric", str(metric)])
+    assert r.exit_code == 0, r.output
+    assert r.stderr == (
+        f"curvimesh: warning: {metric}: the metric's directions turn 229 deg within one unit "
+        "length near (0.2, 0); unit edges cannot follow them there (expect edges over 1.4); "
+        "a long size below 0.209 there (now 0.8) would let them\n"
+    )
+    assert "turning     229 deg per unit length at (0.2, 0)" in r.stdout
+    r = CliRunner().invoke(main, ["check-metric", "-q", str(metric)])
+    assert r.exit_code == 0 and r.stderr == ""
+    metric.write_text("domain: {box: [[-1, -1], [1, 1]]}\n" + rings)
+    out = tmp_path / "out.msh"
+    r = CliRunner().invoke(main, ["adapt", "--metric", str(metric), "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "directions turn more than a full circle within one unit length near (0, 0)" in (
+        r.stderr
+    )

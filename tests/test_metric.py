@@ -14,9 +14,11 @@ from curvimesh.errors import MetricError
 from curvimesh.metric import (
     UNIT_TRIANGLE_AREA,
     density_integral,
+    frame_turn,
     intersect,
     load_metric,
     load_metric_text,
+    sharpest_turn,
 )
 
 METRICS = Path(__file__).resolve().parent.parent / "metrics"
@@ -243,3 +245,38 @@ def test_smallest_eigenvalue_matches_lapack_to_relative_rounding_at_any_anisotro
     # the exact λ_min is lam[:, 0] up to the rounding of building g (≈ 1e-16 λ_max)
     assert np.all(np.abs(got - lam[:, 0]) <= 1e-15 * lam[:, 1] + 1e-12 * lam[:, 0])
     assert np.allclose(got, np.linalg.eigvalsh(g)[:, 0], rtol=1e-9, atol=1e-15 * lam[:, 1].max())
+
+
+RINGS = """
+name: rings
+domain:
+  box: [[-1, -1], [1, 1]]
+metric:
+  eigen:
+    sizes: [0.005, 0.1]
+    angle: atan2(y, x)
+"""
+
+
+def test_frame_turn_of_concentric_rings_is_the_tangential_size_over_the_radius():
+    """Directions radial and tangential: along the tangent (unit step 0.1 in the
+    plane) they turn at 1/r per unit of plane length, radially not at all."""
+    fld = load_metric_text(RINGS)
+    r = np.array([0.1, 0.2, 0.5, 0.9])
+    a = np.array([0.3, 2.0, -1.0, 4.0])
+    g, dg = fld.evaluate(np.column_stack([r * np.cos(a), r * np.sin(a)]), derivatives=True)
+    np.testing.assert_allclose(frame_turn(g, dg), 0.1 / r, rtol=1e-12)
+    # anisotropy 20: below a threshold of 21 the rings are ignored
+    assert not frame_turn(g, dg, min_anisotropy=21).any()
+
+
+def test_frame_turn_is_zero_for_a_constant_metric_and_sharpest_turn_is_nearest_the_centre():
+    const = load_metric_text(RINGS.replace("atan2(y, x)", "0.7"))
+    g, dg = const.evaluate(const.sample_points(9), derivatives=True)
+    assert not frame_turn(g, dg).any()
+    turn, at, long_size = sharpest_turn(load_metric_text(RINGS), n=8)
+    # the 8×8 grid of [-1, 1]² (spacing 2/7, centre not on it) comes closest
+    # to the centre at (±1/7, ±1/7)
+    assert math.isclose(turn, 0.1 / (math.sqrt(2) / 7), rel_tol=1e-12)
+    np.testing.assert_allclose(np.abs(at), [1 / 7, 1 / 7], rtol=1e-12)
+    assert math.isclose(long_size, 0.1, rel_tol=1e-12)
