@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from curvimesh.errors import MetricError
 from curvimesh.metric import (
+    MAX_FRAME_TURN,
     UNIT_TRIANGLE_AREA,
     density_integral,
     frame_turn,
@@ -280,3 +281,18 @@ def test_frame_turn_is_zero_for_a_constant_metric_and_sharpest_turn_is_nearest_t
     assert math.isclose(turn, 0.1 / (math.sqrt(2) / 7), rel_tol=1e-12)
     np.testing.assert_allclose(np.abs(at), [1 / 7, 1 / 7], rtol=1e-12)
     assert math.isclose(long_size, 0.1, rel_tol=1e-12)
+
+
+def test_examples_turn_slowly_enough_and_the_tight_front_does_not():
+    """No example draws the warning; the known failure (metrics/hard) does, and
+    with its long size cut to 0.05 no longer. The directions follow the level
+    sets x = 0.5 + c + 0.2 cos(3 pi y) of phi, whose curvature at the tips is
+    0.2 (3 pi)^2 for every c: at the grid row y = 1 (a tip), one unit step of
+    0.08 along them turns them by 0.08 · 0.2 (3 pi)^2 = 1.42 rad, the largest turn."""
+    for path in sorted(METRICS.glob("*.yaml")):
+        assert sharpest_turn(load_metric(path))[0] <= MAX_FRAME_TURN, path.name
+    text = (METRICS / "hard" / "tight_front.yaml").read_text()
+    turn = sharpest_turn(load_metric_text(text))[0]
+    assert math.isclose(turn, 0.08 * 0.2 * (3 * math.pi) ** 2, rel_tol=1e-9)
+    relaxed = load_metric_text(text.replace("hmax: 0.08", "hmax: 0.05"))
+    assert sharpest_turn(relaxed)[0] <= MAX_FRAME_TURN
