@@ -41,6 +41,7 @@ import argparse
 import json
 import math
 import os
+import subprocess
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -290,6 +291,21 @@ def plot(results: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def library_commit() -> str | None:
+    """The checkout's commit (short hash), with "+changes" if curvimesh/ differs from it."""
+    root = Path(__file__).resolve().parents[1]
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True
+        )
+        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "curvimesh"], cwd=root)
+    except OSError:
+        return None
+    if head.returncode != 0:
+        return None
+    return head.stdout.strip() + ("+changes" if dirty.returncode != 0 else "")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--full", action="store_true", help="Also 4000 to 50 000 vertices.")
@@ -330,7 +346,10 @@ def main(argv: list[str] | None = None) -> int:
         plot(saved["runs"], out / "convergence.png")
         return 0
     results: list[dict] = []
-    old = json.loads(log.read_text())["runs"] if log.exists() else []
+    saved_before = json.loads(log.read_text()) if log.exists() else {"runs": []}
+    old = saved_before["runs"]
+    # the note says which commit made which runs: kept when runs are kept (edit it by hand)
+    note = saved_before.get("note") if args.merge or args.keep_straight else None
     if args.merge:
         results = [r for r in old if r["function"] not in names or r["target"] not in vertices]
     if args.keep_straight:
@@ -339,6 +358,7 @@ def main(argv: list[str] | None = None) -> int:
             for r in old
             if r["series"] in STRAIGHT_SERIES and r["function"] in names and r["target"] in vertices
         ]
+    commit = library_commit()
     t0 = time.perf_counter()
     uniform = (
         [] if args.keep_straight else [(run_uniform, n, v, {}) for n in names for v in vertices]
@@ -358,18 +378,19 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{what}: FAILED: {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
                 continue
             for r in records:
+                r["commit"] = commit
                 print(
                     f"{r['function']} {r['series']:8s} N={r['vertices']:6d} "
                     f"L2={r['l2']:.3e} Linf={r['linf']:.3e} ({r['seconds']} s)",
                     flush=True,
                 )
             results += records
-            saved = {"jobs": args.jobs, "wall_seconds": None, "runs": results}
+            saved = {"jobs": args.jobs, "wall_seconds": None, "note": note, "runs": results}
             log.write_text(json.dumps(saved, indent=1) + "\n")
     wall = time.perf_counter() - t0
-    saved = {"jobs": args.jobs, "wall_seconds": round(wall, 1), "runs": results}
+    saved = {"jobs": args.jobs, "wall_seconds": round(wall, 1), "note": note, "runs": results}
     log.write_text(json.dumps(saved, indent=1) + "\n")
-    write_table(results, out / "convergence.md", wall, args.jobs)
+    write_table(results, out / "convergence.md", wall, args.jobs, note)
     plot(results, out / "convergence.png")
     print(f"wrote {out / 'convergence.md'} and {out / 'convergence.png'} ({wall / 60:.1f} min)")
     return 0
