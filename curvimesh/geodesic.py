@@ -22,6 +22,7 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import NDArray
 
+from curvimesh import kernels
 from curvimesh.metric import MetricField
 
 # --------------------------------------------------------------------------- #
@@ -164,6 +165,12 @@ def shoot(
     rows = np.flatnonzero(np.isfinite(v0).all(axis=1) & (total > 0))
     ok[total == 0] = True
     end[total == 0], vel[total == 0] = x0[total == 0], v0[total == 0]
+    cm = field.kernel
+    if cm is not None:
+        e, w, k = end[rows], vel[rows], ok[rows]
+        kernels.shoot(cm.gd, x0[rows], v0[rows], total[rows], tol, max_iterations, e, w, k)
+        end[rows], vel[rows], ok[rows] = e, w, k
+        return Shot(end, vel, ok)
     x, v = x0[rows], v0[rows]
     t = np.zeros(len(rows))
     L = total[rows]
@@ -243,6 +250,11 @@ def parabola_points(x0: NDArray, x1: NDArray, xm: NDArray, t: NDArray) -> tuple[
     return pts, tan
 
 
+def _rows(*arrays: NDArray) -> list[NDArray]:
+    """C-contiguous float copies (where needed) of ``(n, 2)`` arrays, for the kernels."""
+    return [np.ascontiguousarray(a, dtype=float) for a in arrays]
+
+
 def parabola_length_rule(
     field: MetricField, x0: NDArray, x1: NDArray, xm: NDArray, *, segments: int = 2, order: int = 5
 ) -> NDArray:
@@ -251,6 +263,11 @@ def parabola_length_rule(
     Rows where the metric is undefined on the curve get +inf.
     """
     t, w = _gauss(segments, order)
+    cm = field.kernel
+    if cm is not None:
+        out = np.empty(len(x0))
+        kernels.parabola_lengths(cm.g, *_rows(x0, x1, xm), t, w, out)
+        return out
     n0, n1, nm = (1 - t) * (1 - 2 * t), t * (2 * t - 1), 4 * t * (1 - t)
     shape = np.stack([n0, n1, nm], axis=1)  # (k, 3)
     dshape = np.stack([4 * t - 3, 4 * t - 1, 4 - 8 * t], axis=1)
@@ -345,6 +362,15 @@ def shortest_parabola(
         return parabola_length_rule(field, x0[rows], x1[rows], xm, segments=segments, order=order)
 
     grid = np.linspace(-alpha_max, alpha_max, scan)
+    cm = field.kernel
+    if cm is not None:
+        alpha, f_alpha = np.empty(n), np.empty(n)
+        t, w = _gauss(segments, order)
+        a, b = _rows(x0, x1)
+        kernels.shortest_parabolas(cm.g, a, b, grid, t, w, alpha_tol, 60, alpha, f_alpha)
+        mid = mid0 + alpha[:, None] * nrm
+        ln = parabola_length(field, x0, x1, mid) if exact_length else f_alpha
+        return Parabolas(alpha, mid, ln)
     vals = np.empty((n, scan))
     for j, a in enumerate(grid):
         vals[:, j] = length(np.full(n, a))
@@ -428,6 +454,9 @@ PROBES = (
 )
 
 
+_PROBES = np.array(PROBES)
+
+
 def chord_lower_bound(field: MetricField, a: NDArray, b: NDArray) -> NDArray:
     """A lower bound ``(p,)`` of the metric length of the parabolas from a to b, |α| ≤ 1/2.
 
@@ -440,6 +469,11 @@ def chord_lower_bound(field: MetricField, a: NDArray, b: NDArray) -> NDArray:
     geodesic's length, Cauchy–Schwarz), with equality when d is along a
     principal direction.
     """
+    cm = field.kernel
+    if cm is not None:
+        out = np.empty(len(a))
+        kernels.chord_bounds(cm.g, *_rows(a, b), _PROBES, out)
+        return out
     d = b - a
     chord = np.hypot(d[:, 0], d[:, 1])
     with np.errstate(invalid="ignore", divide="ignore"):

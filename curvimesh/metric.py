@@ -30,13 +30,16 @@ import os
 import re
 from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import sympy
 import yaml
 from numpy.typing import NDArray
 from sympy.printing.numpy import NumPyPrinter
+from sympy.printing.pycode import PythonCodePrinter
 
+from curvimesh import kernels
 from curvimesh.errors import ExpressionError, MetricError
 from curvimesh.expressions import FUNCTIONS, parse_expression
 from curvimesh.interpolation import InterpolationMetric, parse_interpolation
@@ -209,6 +212,49 @@ def _compile(exprs: Sequence[sympy.Expr]) -> Callable[[NDArray, NDArray], list[N
     return evaluate
 
 
+class _ScalarPrinter(PythonCodePrinter):
+    """Python code of one point for :func:`curvimesh.kernels.compile_metric`.
+
+    Bare names of ``math`` functions, ``abs`` and the kernels' ``sign``, and
+    every float written exactly (its shortest repr), so that the compiled
+    scalar code and the numpy code compute the same expressions.
+    """
+
+    def __init__(self) -> None:
+        super().__init__({"fully_qualified_modules": False})
+
+    def _print_Float(self, expr):
+        return repr(float(expr))
+
+    def _print_Abs(self, expr):
+        return f"abs({self._print(expr.args[0])})"
+
+    def _print_sign(self, expr):
+        return f"sign({self._print(expr.args[0])})"
+
+    def _print_Pow(self, expr, rational=False):
+        # numba raises ZeroDivisionError for 0.0 ** (negative integer), whatever
+        # the error model; 1 / 0.0 ** n is inf, as in numpy
+        base, exp = expr.as_base_exp()
+        if exp.is_number and exp.is_negative and exp != -sympy.S.Half:
+            return f"(1/{self._print(sympy.Pow(base, -exp, evaluate=False))})"
+        return super()._print_Pow(expr, rational=rational)
+
+    def _print_not_supported(self, expr):
+        raise ValueError(f"no scalar code for {type(expr).__name__}")
+
+
+def _scalar_function(name: str, exprs: Sequence[sympy.Expr]) -> str:
+    """Source of ``def name(x, y)`` returning the expressions as floats (with cse)."""
+    printer = _ScalarPrinter()
+    subs, reduced = sympy.cse([_rewrite_minmax(sympy.sympify(e)) for e in exprs])
+    lines = [f"def {name}(x, y):"]
+    lines += [f"    {printer.doprint(s)} = {printer.doprint(e)}" for s, e in subs]
+    values = ", ".join(f"float({printer.doprint(e)})" for e in reduced)
+    lines.append(f"    return ({values},)")
+    return "\n".join(lines) + "\n"
+
+
 @dataclass(frozen=True)
 class Component:
     """One smooth metric g = [[g11, g12], [g12, g22]] given by sympy expressions.
@@ -271,6 +317,12 @@ class Component:
             return np.zeros((len(pts), 0))
         return np.stack(self._sizes_fn(pts[:, 0], pts[:, 1]), axis=1)
 
+    def scalar_source(self, name: str) -> str:
+        """Source of ``name_g(x, y)`` (g11, g12, g22) and ``name_gd(x, y)`` (with ∂ₓg, ∂ᵧg)
+        for :func:`curvimesh.kernels.compile_metric`; ValueError if an expression has none."""
+        d = [sympy.diff(e, X) for e in self.g] + [sympy.diff(e, Y) for e in self.g]
+        return _scalar_function(f"{name}_g", self.g) + _scalar_function(f"{name}_gd", [*self.g, *d])
+
 
 def _unpack(g: NDArray) -> tuple[NDArray, NDArray, NDArray]:
     return (
@@ -289,6 +341,10 @@ def _pack(g11: NDArray, g12: NDArray, g22: NDArray) -> NDArray:
     return g
 
 
+#: Compiled scalar metrics by their source (:attr:`MetricField.kernel`).
+_COMPILED: dict[str, kernels.CompiledMetric] = {}
+
+
 @dataclass(frozen=True)
 class MetricField:
     """A metric field on a box: one component, or the intersection of several.
@@ -301,6 +357,8 @@ class MetricField:
     box: tuple[float, float, float, float] = (0.0, 0.0, 1.0, 1.0)
     name: str = "metric"
     source: str = "<metric>"
+    #: Evaluate through compiled scalar code (:attr:`kernel`) where the metric has one.
+    jit: bool = True
 
     def evaluate(
         self, pts: NDArray, *, derivatives: bool = False, check: bool = True
@@ -314,7 +372,102 @@ class MetricField:
         Derivatives that come out non-finite at an isolated singular point of
         the expressions (e.g. d/dx sqrt(x²+y²) at the origin) while g itself
         is finite are replaced by central differences of g there.
+
+        Computed by the compiled :attr:`kernel` when there is one (the same
+        expressions, limits and checks, one point at a time), by numpy otherwise.
         """
+        pts = np.ascontiguousarray(pts, dtype=float).reshape(-1, 2)
+        cm = self.kernel
+        if cm is None:
+            return self.evaluate_numpy(pts, derivatives=derivatives, check=check)
+        g, dg = kernels.evaluate(cm, pts, derivatives)
+        if check:
+            bad = ~_finite_rows(g)
+            if bad.any():  # the numpy path names the point and its value
+                i = int(np.argmax(bad))
+                self.evaluate_numpy(pts[i : i + 1], derivatives=False, check=True)
+        return g, dg
+
+    @cached_property
+    def scalar_source(self) -> str | None:
+        """Python source of ``field_g`` and ``field_gd``, the metric at one point
+        (signatures :data:`curvimesh.kernels.SIG_G` and ``SIG_GD``), generated from
+        the components' expressions: the intersection folded left (its derivatives
+        by complex step), a non-finite value replaced by the value 1e-9 box sizes
+        away, NaN where g is not SPD, non-finite derivatives by central differences,
+        as :meth:`evaluate_numpy` does. None when a component has no expressions
+        (an ``interpolation`` form) or an expression has no scalar code."""
+        if not all(isinstance(c, Component) for c in self.components):
+            return None
+        try:
+            parts = [c.scalar_source(f"c{k}") for k, c in enumerate(self.components)]
+        except ValueError:
+            return None
+        xmin, ymin, xmax, ymax = self.box
+        span = max(xmax - xmin, ymax - ymin)
+        sx, sy = (1e-9 * span * np.array([0.6, 0.8])).tolist()
+        h = 1e-6 * span
+        fold_g = "".join(f"    a = intersect(*a, *c{k}_g(x, y))\n" for k in range(1, len(parts)))
+        fold_d = "".join(f"    a = intersect_d(a, c{k}_gd(x, y))\n" for k in range(1, len(parts)))
+        nan = "math.nan"
+        top = f"""
+def raw_g(x, y):
+    a = c0_g(x, y)
+{fold_g}    return a
+
+def raw_gd(x, y):
+    a = c0_gd(x, y)
+{fold_d}    return a
+
+def limit_g(x, y):
+    a = raw_g(x, y)
+    if not finite3(a):
+        a = raw_g(x + {sx!r}, y + {sy!r})
+    return a
+
+def field_g(x, y):
+    a = limit_g(x, y)
+    if not spd3(a):
+        return ({nan}, {nan}, {nan})
+    return a
+
+def field_gd(x, y):
+    d = raw_gd(x, y)
+    if not finite3((d[0], d[1], d[2])):
+        d = raw_gd(x + {sx!r}, y + {sy!r})
+    if not spd3((d[0], d[1], d[2])):
+        return ({", ".join([nan] * 9)})
+    if not finite9(d):
+        px = limit_g(x + {h!r}, y)
+        mx = limit_g(x - {h!r}, y)
+        py = limit_g(x, y + {h!r})
+        my = limit_g(x, y - {h!r})
+        s = {2 * h!r}
+        d = (d[0], d[1], d[2],
+             (px[0] - mx[0]) / s, (px[1] - mx[1]) / s, (px[2] - mx[2]) / s,
+             (py[0] - my[0]) / s, (py[1] - my[1]) / s, (py[2] - my[2]) / s)
+    return d
+"""
+        return "import math\n" + "".join(parts) + top
+
+    @property
+    def kernel(self) -> kernels.CompiledMetric | None:
+        """The compiled scalar metric (:func:`curvimesh.kernels.compile_metric` of
+        :attr:`scalar_source`), compiled on first use and shared by equal sources;
+        None when ``jit`` is off or there is no scalar source."""
+        if not self.jit:
+            return None
+        src = self.scalar_source
+        if src is None:
+            return None
+        if src not in _COMPILED:
+            _COMPILED[src] = kernels.compile_metric(src, "field_g", "field_gd")
+        return _COMPILED[src]
+
+    def evaluate_numpy(
+        self, pts: NDArray, *, derivatives: bool = False, check: bool = True
+    ) -> tuple[NDArray, NDArray | None]:
+        """:meth:`evaluate` by the vectorised numpy expressions (the reference)."""
         pts = np.ascontiguousarray(pts, dtype=float).reshape(-1, 2)
         g, dg = self._raw(pts, derivatives)
         bad = ~_spd(g)
@@ -413,7 +566,7 @@ class MetricField:
                         f"({pts[i, 0]:.6g}, {pts[i, 1]:.6g}): sizes = "
                         f"{', '.join(f'{v:.6g}' for v in s[i])}"
                     )
-        self.evaluate(pts, derivatives=False, check=True)
+        self.evaluate_numpy(pts, derivatives=False, check=True)
 
     def sample_points(self, n: int = 65) -> NDArray:
         """A regular n×n grid over the box, boundary included, ``(n*n, 2)``."""

@@ -14,6 +14,7 @@ LAYERS = {
     "__init__": 0,
     "errors": 0,
     "expressions": 1,
+    "kernels": 1,
     "bezier": 1,
     "spatial": 1,
     "mesh": 2,
@@ -51,6 +52,7 @@ EDGES = {
     "click": {"cli"},
     "matplotlib": {"plot"},
     "yaml": {"metric", "batch"},
+    "numba": {"kernels"},
 }
 
 

@@ -1,0 +1,561 @@
+"""Compiled inner loops (numba): the metric at a point, parabola lengths, geodesic shots.
+
+The vectorised numpy code of :mod:`curvimesh.geodesic` spends most of its
+time outside arithmetic: temporaries of shape (rows, quadrature points, 2, 2),
+einsums, and Python overhead on the small arrays of an iterative search's
+last rows. Here the same algorithms run one row at a time in machine code,
+rows in parallel (``prange``), calling the metric as a compiled scalar
+function ``g(x, y)`` (a numba ``cfunc`` built once per metric field by
+:func:`compile_metric`, passed to the kernels as a first-class function, so
+that each kernel is compiled once, cached on disk, and serves every metric).
+
+Scalar metric functions:
+
+* ``g(x, y) -> (g11, g12, g22)`` (:data:`SIG_G`);
+* ``gd(x, y) -> (g11, g12, g22, ∂ₓg11, ∂ₓg12, ∂ₓg22, ∂ᵧg11, ∂ᵧg12, ∂ᵧg22)`` (:data:`SIG_GD`);
+
+both NaN wherever the metric is not finite and positive definite.
+
+Each kernel mirrors, step for step, the numpy function of :mod:`curvimesh.geodesic`
+it stands in for (which stays the reference, and serves metrics with no scalar
+form); results agree to rounding (the tests compare them). Floating-point
+semantics are numpy's (``error_model="numpy"``: x/0 is ±inf or NaN, no exception),
+not fast-math, so NaN marks undefined metric values as in the numpy code.
+
+This module is the only user of numba (STYLE: each third-party edge in one module).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import math
+import os
+import re
+import sys
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import numba
+import numpy as np
+from numba import float64, njit, prange, types
+from numpy.typing import NDArray
+
+#: Signature of a scalar metric: (x, y) ↦ (g11, g12, g22).
+SIG_G = types.UniTuple(float64, 3)(float64, float64)
+#: Signature of a scalar metric with its first derivatives: (x, y) ↦ 9 values.
+SIG_GD = types.UniTuple(float64, 9)(float64, float64)
+
+_JIT = {"cache": True, "error_model": "numpy", "nogil": True}
+
+
+# --------------------------------------------------------------------------- #
+# Scalar helpers for generated metric code                                     #
+# --------------------------------------------------------------------------- #
+
+
+@njit(**_JIT)
+def sign(u):
+    """sign(u): −1, 0 or 1 (NaN for NaN), as sympy's ``sign`` of a real."""
+    if u > 0:
+        return 1.0
+    if u < 0:
+        return -1.0
+    if u == 0:
+        return 0.0
+    return u
+
+
+@njit(**_JIT)
+def _re(z):
+    return z.real
+
+
+@njit(**_JIT)
+def intersect(a11, a12, a22, b11, b12, b22):
+    """Metric intersection by simultaneous reduction, one point, real or complex.
+
+    The scalar twin of :func:`curvimesh.metric.intersect_components` (same
+    formula, same branches chosen on real parts, same degenerate case); with
+    complex arguments it serves the complex-step derivatives.
+    """
+    qa = a11 * a22 - a12 * a12
+    qb = -(a11 * b22 + a22 * b11 - 2.0 * a12 * b12)
+    qc = b11 * b22 - b12 * b12
+    disc = qb * qb - 4.0 * qa * qc
+    inv2qa = 0.5 / qa
+    degenerate = _re(disc) <= 1e-10 * (_re(qb) * _re(qb))
+    if degenerate:
+        s0 = -qb * inv2qa
+        big = s0 if _re(s0) > 1.0 else 1.0 + 0.0 * s0
+        return big * a11, big * a12, big * a22
+    root = np.sqrt(disc)
+    o11 = 0.0 * qa
+    o12 = 0.0 * qa
+    o22 = 0.0 * qa
+    for k in range(2):
+        sgn = -1.0 if k == 0 else 1.0
+        s = (sgn * root - qb) * inv2qa
+        c11 = b11 - s * a11
+        c12 = b12 - s * a12
+        c22 = b22 - s * a22
+        if abs(_re(c11)) >= abs(_re(c22)):
+            v1 = -c12
+            v2 = c11
+        else:
+            v1 = c22
+            v2 = -c12
+        w1 = a11 * v1 + a12 * v2
+        w2 = a12 * v1 + a22 * v2
+        lam = v1 * w1 + v2 * w2
+        f = (s if _re(s) > 1.0 else 1.0 + 0.0 * s) / lam
+        fw1 = f * w1
+        o11 = o11 + fw1 * w1
+        o12 = o12 + fw1 * w2
+        o22 = o22 + f * w2 * w2
+    return o11, o12, o22
+
+
+@njit(**_JIT)
+def intersect_d(a, b):
+    """Intersection of two 9-tuples (g and ∂g) with its derivatives by complex step.
+
+    The derivative along x_k is Im I(M1 + i h ∂ₖM1, M2 + i h ∂ₖM2) / h, h = 1e-30
+    (Squire & Trapp 1998), as in :func:`curvimesh.metric.intersect_with_derivatives`;
+    the value is the real part of the second step.
+    """
+    h = 1e-30
+    ih = 1j * h
+    z0 = intersect(
+        a[0] + ih * a[3], a[1] + ih * a[4], a[2] + ih * a[5],
+        b[0] + ih * b[3], b[1] + ih * b[4], b[2] + ih * b[5],
+    )  # fmt: skip
+    z1 = intersect(
+        a[0] + ih * a[6], a[1] + ih * a[7], a[2] + ih * a[8],
+        b[0] + ih * b[6], b[1] + ih * b[7], b[2] + ih * b[8],
+    )  # fmt: skip
+    return (
+        z1[0].real, z1[1].real, z1[2].real,
+        z0[0].imag / h, z0[1].imag / h, z0[2].imag / h,
+        z1[0].imag / h, z1[1].imag / h, z1[2].imag / h,
+    )  # fmt: skip
+
+
+@njit(**_JIT)
+def finite3(g):
+    return math.isfinite(g[0]) and math.isfinite(g[1]) and math.isfinite(g[2])
+
+
+@njit(**_JIT)
+def spd3(g):
+    """Whether (g11, g12, g22) is finite and positive definite (as ``metric._spd``)."""
+    return finite3(g) and g[0] > 0 and g[0] * g[2] - g[1] * g[1] > 0
+
+
+@njit(**_JIT)
+def finite9(d):
+    for k in range(9):
+        if not math.isfinite(d[k]):
+            return False
+    return True
+
+
+#: Names the generated metric code may use besides ``math``'s functions.
+HELPERS: Mapping[str, Callable] = {
+    "sign": sign,
+    "intersect": intersect,
+    "intersect_d": intersect_d,
+    "finite3": finite3,
+    "spd3": spd3,
+    "finite9": finite9,
+}
+
+
+class CompiledMetric:
+    """A metric field's scalar functions: ``g`` (:data:`SIG_G`) and ``gd`` (:data:`SIG_GD`)."""
+
+    def __init__(self, g, gd) -> None:
+        self.g = g
+        self.gd = gd
+
+
+#: Environment variable naming the directory of compiled metrics (default: the
+#: user's cache directory); ``off`` compiles in memory at every run.
+CACHE_ENV = "CURVIMESH_CACHE"
+
+_MODULE_FOOT = """
+for _name in {helpers!r}:
+    globals()[_name] = njit(error_model="numpy", cache=True)(globals()[_name])
+{g_name}_cfunc = cfunc(SIG_G, error_model="numpy", cache=True)({g_name})
+{gd_name}_cfunc = cfunc(SIG_GD, error_model="numpy", cache=True)({gd_name})
+"""
+
+
+def compile_metric(source: str, g_name: str, gd_name: str) -> CompiledMetric:
+    """Compile generated Python source into the two scalar functions of a metric.
+
+    ``source`` defines plain functions of (x, y) over ``math``'s names and
+    :data:`HELPERS`; every function it defines is jitted, so that the two
+    entry points ``g_name`` and ``gd_name`` may call the others. The
+    source is code generated from sympy expressions (never user text).
+
+    The source is written, as a module named by a hash of it and of this
+    module's own code, to the cache directory (:data:`CACHE_ENV`), where
+    numba caches the machine code beside it: a metric compiled once loads in
+    a fraction of the time after. Where that directory cannot be written,
+    the source is compiled in memory.
+    """
+    names = re.findall(r"^def (\w+)\(", source, flags=re.MULTILINE)
+    helpers = [n for n in names if n not in (g_name, gd_name)]
+    text = (
+        "# curvimesh: a metric compiled by curvimesh.kernels.compile_metric (safe to delete)\n"
+        "import math\nfrom math import *\nfrom numba import cfunc, njit\n"
+        f"from curvimesh.kernels import SIG_G, SIG_GD, {', '.join(HELPERS)}\n\n"
+        + source
+        + _MODULE_FOOT.format(helpers=helpers, g_name=g_name, gd_name=gd_name)
+    )
+    directory = _cache_directory()
+    if directory is not None:
+        key = hashlib.sha256((_VERSION + text).encode()).hexdigest()[:24]
+        path = directory / f"metric_{key}.py"
+        try:
+            if not path.exists():
+                directory.mkdir(parents=True, exist_ok=True)
+                tmp = path.with_suffix(f".{os.getpid()}.tmp")
+                tmp.write_text(text)
+                os.replace(tmp, path)
+            name = f"curvimesh_metric_{key}"
+            spec = importlib.util.spec_from_file_location(name, path)
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[name] = module  # numba's cache finds the module's functions by name
+            spec.loader.exec_module(module)
+            ns = vars(module)
+        except Exception:  # an unwritable or broken cache: compile in memory below
+            ns = None
+    if directory is None or ns is None:
+        ns = {}
+        exec(compile(text.replace("cache=True", "cache=False"), "<curvimesh metric>", "exec"), ns)
+    return CompiledMetric(ns[f"{g_name}_cfunc"], ns[f"{gd_name}_cfunc"])
+
+
+def _cache_directory() -> Path | None:
+    env = os.environ.get(CACHE_ENV)
+    if env == "off":
+        return None
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "curvimesh"
+
+
+#: What the compiled code of a metric depends on besides its source: numba's
+#: version and the helpers of this module (a hash of its text).
+_VERSION = f"{numba.__version__}:" + hashlib.sha256(Path(__file__).read_bytes()).hexdigest()
+
+
+# --------------------------------------------------------------------------- #
+# Evaluation on arrays                                                         #
+# --------------------------------------------------------------------------- #
+
+
+@njit(parallel=True, **_JIT)
+def _eval_g(fn, pts, out):
+    for i in prange(pts.shape[0]):
+        g = fn(pts[i, 0], pts[i, 1])
+        out[i, 0, 0] = g[0]
+        out[i, 0, 1] = g[1]
+        out[i, 1, 0] = g[1]
+        out[i, 1, 1] = g[2]
+
+
+@njit(parallel=True, **_JIT)
+def _eval_gd(fn, pts, out, dout):
+    for i in prange(pts.shape[0]):
+        d = fn(pts[i, 0], pts[i, 1])
+        out[i, 0, 0] = d[0]
+        out[i, 0, 1] = d[1]
+        out[i, 1, 0] = d[1]
+        out[i, 1, 1] = d[2]
+        for k in range(2):
+            dout[i, 0, 0, k] = d[3 + 3 * k]
+            dout[i, 0, 1, k] = d[4 + 3 * k]
+            dout[i, 1, 0, k] = d[4 + 3 * k]
+            dout[i, 1, 1, k] = d[5 + 3 * k]
+
+
+def evaluate(cm: CompiledMetric, pts: NDArray, derivatives: bool) -> tuple[NDArray, NDArray | None]:
+    """g ``(n, 2, 2)`` and, if asked, ∂g ``(n, 2, 2, 2)`` at points ``(n, 2)`` (C-contiguous)."""
+    g = np.empty((len(pts), 2, 2))
+    if not derivatives:
+        _eval_g(cm.g, pts, g)
+        return g, None
+    dg = np.empty((len(pts), 2, 2, 2))
+    _eval_gd(cm.gd, pts, g, dg)
+    return g, dg
+
+
+# --------------------------------------------------------------------------- #
+# Parabolas                                                                    #
+# --------------------------------------------------------------------------- #
+
+
+@njit(**_JIT)
+def _parabola_length(fn, ax, ay, bx, by, mx, my, t, w):
+    """∫₀¹ sqrt(ẋᵀ g(x(t)) ẋ) dt of one parabola by the rule (t, w); inf if undefined."""
+    acc = 0.0
+    for k in range(t.shape[0]):
+        tk = t[k]
+        n0 = (1 - tk) * (1 - 2 * tk)
+        n1 = tk * (2 * tk - 1)
+        nm = 4 * tk * (1 - tk)
+        d0 = 4 * tk - 3
+        d1 = 4 * tk - 1
+        dm = 4 - 8 * tk
+        px = n0 * ax + n1 * bx + nm * mx
+        py = n0 * ay + n1 * by + nm * my
+        tx = d0 * ax + d1 * bx + dm * mx
+        ty = d0 * ay + d1 * by + dm * my
+        g = fn(px, py)
+        acc += w[k] * math.sqrt(tx * tx * g[0] + 2 * tx * ty * g[1] + ty * ty * g[2])
+    if not math.isfinite(acc):
+        return math.inf
+    return acc
+
+
+@njit(parallel=True, **_JIT)
+def parabola_lengths(fn, x0, x1, xm, t, w, out):
+    """Lengths of parabolas (rows of x0, x1, xm ``(n, 2)``) by the rule (t, w) into ``out``."""
+    for i in prange(x0.shape[0]):
+        out[i] = _parabola_length(
+            fn, x0[i, 0], x0[i, 1], x1[i, 0], x1[i, 1], xm[i, 0], xm[i, 1], t, w
+        )
+
+
+@njit(**_JIT)
+def _offset_length(fn, x0, x1, i, alpha, t, w):
+    # middle node (x0 + x1)/2 + α (Δy, −Δx), geodesic.parabola_midnode
+    dx = x1[i, 0] - x0[i, 0]
+    dy = x1[i, 1] - x0[i, 1]
+    mx = 0.5 * (x0[i, 0] + x1[i, 0]) + alpha * dy
+    my = 0.5 * (x0[i, 1] + x1[i, 1]) - alpha * dx
+    return _parabola_length(fn, x0[i, 0], x0[i, 1], x1[i, 0], x1[i, 1], mx, my, t, w)
+
+
+@njit(parallel=True, **_JIT)
+def shortest_parabolas(fn, x0, x1, grid, t, w, tol, max_iter, alpha, length):
+    """The search of :func:`curvimesh.geodesic.shortest_parabola`, one row at a time.
+
+    A scan of α over ``grid``, then safeguarded parabolic interpolation
+    (Brent 1973) in the bracket around the best scanned value, golden-section
+    steps when the vertex is unusable or every third iteration, until the
+    bracket is at most ``tol`` wide. Writes α and the rule's length at it.
+    """
+    cgold = 0.3819660112501051
+    scan = grid.shape[0]
+    for i in prange(x0.shape[0]):
+        vals = np.empty(scan)
+        best = 0
+        for j in range(scan):
+            vals[j] = _offset_length(fn, x0, x1, i, grid[j], t, w)
+            if vals[j] < vals[best]:  # the first smallest, as np.argmin
+                best = j
+        ia = max(best - 1, 0)
+        ic = min(best + 1, scan - 1)
+        a, b, c = grid[ia], grid[best], grid[ic]
+        fa, fb, fc = vals[ia], vals[best], vals[ic]
+        for it in range(max_iter):
+            if not (c - a) > tol:
+                break
+            p = (b - a) ** 2 * (fb - fc) - (b - c) ** 2 * (fb - fa)
+            q = 2.0 * ((b - a) * (fb - fc) - (b - c) * (fb - fa))
+            u = b - p / q
+            eps = 0.25 * tol
+            golden = (
+                not math.isfinite(u)
+                or u <= a + eps
+                or u >= c - eps
+                or abs(u - b) < eps
+                or it % 3 == 2
+            )
+            if golden:
+                if (c - b) >= (b - a):
+                    u = b + cgold * (c - b)
+                else:
+                    u = b - cgold * (b - a)
+            fu = _offset_length(fn, x0, x1, i, u, t, w)
+            if not math.isfinite(fu):
+                fu = math.inf
+            if fu < fb:
+                if u > b:
+                    a, fa = b, fb
+                else:
+                    c, fc = b, fb
+                b, fb = u, fu
+            else:
+                if u > b:
+                    c, fc = u, fu
+                else:
+                    a, fa = u, fu
+        alpha[i] = b
+        length[i] = fb
+
+
+@njit(parallel=True, **_JIT)
+def chord_bounds(fn, a, b, probes, out):
+    """:func:`curvimesh.geodesic.chord_lower_bound` row by row: |d| / max over the
+    probes (t, s) of sqrt(νᵀ g⁻¹ ν) at a + t d + s d×e₃."""
+    for i in prange(a.shape[0]):
+        dx = b[i, 0] - a[i, 0]
+        dy = b[i, 1] - a[i, 1]
+        chord = math.hypot(dx, dy)
+        nx = dx / chord
+        ny = dy / chord
+        worst = -math.inf
+        nan = False
+        for k in range(probes.shape[0]):
+            tk = probes[k, 0]
+            sk = probes[k, 1]
+            g = fn(a[i, 0] + tk * dx + sk * dy, a[i, 1] + tk * dy - sk * dx)
+            det = g[0] * g[2] - g[1] ** 2
+            sup = (g[2] * nx**2 - 2 * g[1] * nx * ny + g[0] * ny**2) / det
+            if math.isnan(sup):
+                nan = True
+            elif sup > worst:
+                worst = sup
+        out[i] = math.nan if nan else chord / math.sqrt(worst)
+
+
+# --------------------------------------------------------------------------- #
+# Geodesic shooting                                                            #
+# --------------------------------------------------------------------------- #
+
+
+@njit(**_JIT)
+def _acceleration(fn, x, y, vx, vy):
+    """ẍ = −Γ(x)(ẋ, ẋ) at one point (paper equation (2)); NaN where g is undefined.
+
+    With Tₘ = Σₖₗ (∂ₗg_mk + ∂ₖg_ml − ∂ₘg_kl) vₖvₗ = 2 Σₖₗ ∂ₗg_mk vₖvₗ − Σₖₗ ∂ₘg_kl vₖvₗ,
+    ẍ = −½ g⁻¹ T.
+    """
+    d = fn(x, y)
+    g11, g12, g22 = d[0], d[1], d[2]
+    # ∂g/∂x and ∂g/∂y, contracted with v
+    gx11, gx12, gx22 = d[3], d[4], d[5]
+    gy11, gy12, gy22 = d[6], d[7], d[8]
+    vgv_x = gx11 * vx * vx + 2 * gx12 * vx * vy + gx22 * vy * vy  # Σ ∂ₓg_kl vₖvₗ
+    vgv_y = gy11 * vx * vx + 2 * gy12 * vx * vy + gy22 * vy * vy
+    # Σₖₗ ∂ₗ g_mk vₖ vₗ = Σₖ (v·∇) g_mk vₖ
+    dv11 = gx11 * vx + gy11 * vy
+    dv12 = gx12 * vx + gy12 * vy
+    dv22 = gx22 * vx + gy22 * vy
+    t1 = 2 * (dv11 * vx + dv12 * vy) - vgv_x
+    t2 = 2 * (dv12 * vx + dv22 * vy) - vgv_y
+    det = g11 * g22 - g12 * g12
+    ax = -0.5 * (g22 * t1 - g12 * t2) / det
+    ay = -0.5 * (-g12 * t1 + g11 * t2) / det
+    return ax, ay
+
+
+# Dormand & Prince (1980) RK5(4)7M, as geodesic._DP_*
+_C2, _C3, _C4, _C5 = 1 / 5, 3 / 10, 4 / 5, 8 / 9
+_A21 = 1 / 5
+_A31, _A32 = 3 / 40, 9 / 40
+_A41, _A42, _A43 = 44 / 45, -56 / 15, 32 / 9
+_A51, _A52, _A53, _A54 = 19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729
+_A61, _A62, _A63, _A64, _A65 = 9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656
+_B1, _B3, _B4, _B5, _B6 = 35 / 384, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84
+_E1 = 35 / 384 - 5179 / 57600
+_E3 = 500 / 1113 - 7571 / 16695
+_E4 = 125 / 192 - 393 / 640
+_E5 = -2187 / 6784 + 92097 / 339200
+_E6 = 11 / 84 - 187 / 2100
+_E7 = -1 / 40
+
+
+@njit(**_JIT)
+def _dp_step(fn, x, y, vx, vy, h):
+    """One Dormand–Prince step of the geodesic ODE; (x5, y5, vx5, vy5, error estimate)."""
+    k1x, k1y = vx, vy
+    a1x, a1y = _acceleration(fn, x, y, vx, vy)
+    x2 = x + h * _A21 * k1x
+    y2 = y + h * _A21 * k1y
+    k2x = vx + h * _A21 * a1x
+    k2y = vy + h * _A21 * a1y
+    a2x, a2y = _acceleration(fn, x2, y2, k2x, k2y)
+    x3 = x + h * (_A31 * k1x + _A32 * k2x)
+    y3 = y + h * (_A31 * k1y + _A32 * k2y)
+    k3x = vx + h * (_A31 * a1x + _A32 * a2x)
+    k3y = vy + h * (_A31 * a1y + _A32 * a2y)
+    a3x, a3y = _acceleration(fn, x3, y3, k3x, k3y)
+    x4 = x + h * (_A41 * k1x + _A42 * k2x + _A43 * k3x)
+    y4 = y + h * (_A41 * k1y + _A42 * k2y + _A43 * k3y)
+    k4x = vx + h * (_A41 * a1x + _A42 * a2x + _A43 * a3x)
+    k4y = vy + h * (_A41 * a1y + _A42 * a2y + _A43 * a3y)
+    a4x, a4y = _acceleration(fn, x4, y4, k4x, k4y)
+    x5 = x + h * (_A51 * k1x + _A52 * k2x + _A53 * k3x + _A54 * k4x)
+    y5 = y + h * (_A51 * k1y + _A52 * k2y + _A53 * k3y + _A54 * k4y)
+    k5x = vx + h * (_A51 * a1x + _A52 * a2x + _A53 * a3x + _A54 * a4x)
+    k5y = vy + h * (_A51 * a1y + _A52 * a2y + _A53 * a3y + _A54 * a4y)
+    a5x, a5y = _acceleration(fn, x5, y5, k5x, k5y)
+    x6 = x + h * (_A61 * k1x + _A62 * k2x + _A63 * k3x + _A64 * k4x + _A65 * k5x)
+    y6 = y + h * (_A61 * k1y + _A62 * k2y + _A63 * k3y + _A64 * k4y + _A65 * k5y)
+    k6x = vx + h * (_A61 * a1x + _A62 * a2x + _A63 * a3x + _A64 * a4x + _A65 * a5x)
+    k6y = vy + h * (_A61 * a1y + _A62 * a2y + _A63 * a3y + _A64 * a4y + _A65 * a5y)
+    a6x, a6y = _acceleration(fn, x6, y6, k6x, k6y)
+    # 7th stage (FSAL): at the 5th-order solution
+    nx = x + h * (_B1 * k1x + _B3 * k3x + _B4 * k4x + _B5 * k5x + _B6 * k6x)
+    ny = y + h * (_B1 * k1y + _B3 * k3y + _B4 * k4y + _B5 * k5y + _B6 * k6y)
+    nvx = vx + h * (_B1 * a1x + _B3 * a3x + _B4 * a4x + _B5 * a5x + _B6 * a6x)
+    nvy = vy + h * (_B1 * a1y + _B3 * a3y + _B4 * a4y + _B5 * a5y + _B6 * a6y)
+    a7x, a7y = _acceleration(fn, nx, ny, nvx, nvy)
+    ex = h * (_E1 * k1x + _E3 * k3x + _E4 * k4x + _E5 * k5x + _E6 * k6x + _E7 * nvx)
+    ey = h * (_E1 * k1y + _E3 * k3y + _E4 * k4y + _E5 * k5y + _E6 * k6y + _E7 * nvy)
+    evx = h * (_E1 * a1x + _E3 * a3x + _E4 * a4x + _E5 * a5x + _E6 * a6x + _E7 * a7x)
+    evy = h * (_E1 * a1y + _E3 * a3y + _E4 * a4y + _E5 * a5y + _E6 * a6y + _E7 * a7y)
+    err = max(max(abs(ex), abs(ey)), max(abs(evx), abs(evy)) * h)
+    return nx, ny, nvx, nvy, err
+
+
+@njit(parallel=True, **_JIT)
+def shoot(fn, x0, v0, total, tol, max_iterations, end, vel, ok):
+    """:func:`curvimesh.geodesic.shoot`'s adaptive Dormand–Prince loop, one row at a time.
+
+    ``v0`` has unit speed in the metric and finite rows; ``total`` > 0 the lengths.
+    Accepted steps have an error estimate at most ``tol`` times |v₀| · length;
+    the next step is h · min(5, max(0.2, 0.9 (tol/err)^(1/5))), or h/4 after
+    a non-finite step. Writes ends, end velocities and success flags.
+    """
+    for i in prange(x0.shape[0]):
+        x, y = x0[i, 0], x0[i, 1]
+        vx, vy = v0[i, 0], v0[i, 1]
+        L = total[i]
+        scale = math.hypot(vx, vy) * L
+        t = 0.0
+        h = L / 4.0
+        for _ in range(max_iterations):
+            h = min(h, L - t)
+            nx, ny, nvx, nvy, err = _dp_step(fn, x, y, vx, vy, h)
+            err = err / scale
+            finite = (
+                math.isfinite(nx)
+                and math.isfinite(ny)
+                and math.isfinite(nvx)
+                and math.isfinite(nvy)
+                and math.isfinite(err)
+            )
+            accept = finite and err <= tol
+            if accept:
+                x, y, vx, vy = nx, ny, nvx, nvy
+                t = t + h
+            if finite:
+                factor = min(max(0.9 * (tol / max(err, 1e-300)) ** 0.2, 0.2), 5.0)
+            else:
+                factor = 0.25
+            h = h * factor
+            if accept and t >= L * (1 - 1e-14):
+                end[i, 0], end[i, 1] = x, y
+                vel[i, 0], vel[i, 1] = vx, vy
+                ok[i] = True
+                break
+            if h < 1e-12 * L:
+                break

@@ -1,0 +1,195 @@
+"""The compiled kernels against the numpy code they stand in for, and the metric cache.
+
+Every metric with expressions is evaluated by compiled scalar code
+(:mod:`curvimesh.kernels`) by default; ``MetricField(jit=False)`` keeps the
+vectorised numpy expressions, the reference the kernels are judged by here.
+The analytic oracles of test_geodesic.py and test_metric.py run on the
+compiled path.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import sympy
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from curvimesh import geodesic as geo
+from curvimesh import kernels
+from curvimesh.errors import MetricError
+from curvimesh.metric import Component, MetricField, X, Y, load_metric, load_metric_text
+
+METRICS = Path(__file__).resolve().parent.parent / "metrics"
+EXAMPLES = ["toy", "three_toys", "concentric", "quartic", "front", "circular_layer"]
+
+
+def both(fld: MetricField) -> tuple[MetricField, MetricField]:
+    """The field on the compiled path and on the numpy path."""
+    assert fld.kernel is not None
+    return fld, dataclasses.replace(fld, jit=False)
+
+
+def box_points(fld: MetricField, n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    xmin, ymin, xmax, ymax = fld.box
+    return np.column_stack([rng.uniform(xmin, xmax, n), rng.uniform(ymin, ymax, n)])
+
+
+def scale(g: np.ndarray, dg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-point magnitudes of g, and of ∂g's terms (|g| over the box's length scale)."""
+    mag = np.abs(g).max(axis=(1, 2))
+    return mag, np.maximum(np.abs(dg).max(axis=(1, 2, 3)), mag)
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_compiled_metric_and_derivatives_match_numpy(name):
+    fast, ref = both(load_metric(METRICS / f"{name}.yaml"))
+    pts = box_points(fast, 4000, 7)
+    # the singular centre of the rings and the box corners take the limits
+    pts = np.vstack([pts, [[0.0, 0.0], [0.5, 0.5]], np.array(fast.box).reshape(2, 2)])
+    g, dg = fast.evaluate(pts, derivatives=True)
+    g0, dg0 = ref.evaluate(pts, derivatives=True)
+    mag, dmag = scale(g0, dg0)
+    # intersections reduce nearly proportional tensors: 1e-9 relative there
+    tol = 1e-9 if name == "three_toys" else 1e-12
+    assert np.all(np.abs(g - g0).max(axis=(1, 2)) <= tol * mag)
+    assert np.all(np.abs(dg - dg0).max(axis=(1, 2, 3)) <= 1e3 * tol * dmag)
+
+
+def test_undefined_points_are_nan_on_both_paths_and_named_on_check():
+    text = """
+domain: {box: [[-1, -1], [1, 1]]}
+metric:
+  tensor: [1 + x, 0, 1]
+"""
+    fast, ref = both(load_metric_text(text.replace("1 + x", "2 + x")))
+    pts = np.array([[-3.0, 0.0], [0.0, 0.0], [-2.5, 0.1]])  # x < -2: g11 < 0
+    g, dg = fast.evaluate(pts, derivatives=True, check=False)
+    g0, dg0 = ref.evaluate(pts, derivatives=True, check=False)
+    assert np.array_equal(np.isnan(g), np.isnan(g0))
+    assert np.array_equal(np.isnan(dg), np.isnan(dg0))
+    assert np.isnan(g[[0, 2]]).all() and np.isfinite(g[1]).all()
+    with pytest.raises(MetricError, match=r"at \(-3, 0\): g = "):
+        fast.evaluate(pts)
+
+
+@pytest.mark.parametrize("name", ["toy", "three_toys", "front"])
+def test_geodesic_kernels_match_numpy(name):
+    fast, ref = both(load_metric(METRICS / f"{name}.yaml"))
+    a = box_points(fast, 1500, 11)
+    d = np.random.default_rng(12).normal(size=(len(a), 2))
+    s1, s0 = geo.shoot(fast, a, d, 1.0), geo.shoot(ref, a, d, 1.0)
+    assert np.array_equal(s1.ok, s0.ok) and s1.ok.sum() > 1000
+    ok = s1.ok
+    span = np.abs(s0.end[ok] - a[ok]).max(axis=1)
+    assert np.all(np.abs(s1.end[ok] - s0.end[ok]).max(axis=1) <= 1e-6 * span)
+    b = np.where(ok[:, None], s1.end, a + 0.01)
+    p1, p0 = geo.shortest_parabola(fast, a, b), geo.shortest_parabola(ref, a, b)
+    np.testing.assert_allclose(p1.length, p0.length, rtol=1e-7)
+    # the length is flat at its minimum: α agrees to the search's tolerance
+    np.testing.assert_allclose(p1.alpha, p0.alpha, atol=1e-4)
+    np.testing.assert_allclose(
+        geo.chord_lower_bound(fast, a, b), geo.chord_lower_bound(ref, a, b), rtol=1e-7
+    )
+    np.testing.assert_allclose(
+        geo.parabola_length_rule(fast, a, b, p0.mid),
+        geo.parabola_length_rule(ref, a, b, p0.mid),
+        rtol=1e-7,
+    )
+
+
+def test_parabola_through_undefined_region_is_infinitely_long_on_both_paths():
+    fld = MetricField((Component((1 / Y, sympy.Integer(0), 1 / Y)),), box=(-1, 0.1, 1, 2))
+    fast, ref = both(fld)
+    a, b = np.array([[-0.5, 0.2], [0.0, 1.0]]), np.array([[0.5, 0.2], [0.3, 1.2]])
+    mid = np.array([[0.0, -0.5], [0.15, 1.1]])  # the first dips below y = 0
+    for f in (fast, ref):
+        ln = geo.parabola_length_rule(f, a, b, mid)
+        assert ln[0] == math.inf and np.isfinite(ln[1])
+
+
+def test_constant_metric_shortest_parabola_on_the_compiled_path_is_the_segment():
+    g = np.array([[40.0, 12.0], [12.0, 5.0]])
+    fld = MetricField((Component(tuple(sympy.Float(v) for v in (40.0, 12.0, 5.0))),))
+    assert fld.kernel is not None
+    rng = np.random.default_rng(3)
+    a, b = rng.uniform(0, 1, (200, 2)), rng.uniform(0, 1, (200, 2))
+    par = geo.shortest_parabola(fld, a, b)
+    d = b - a
+    exact = np.sqrt(np.einsum("pi,ij,pj->p", d, g, d))
+    np.testing.assert_allclose(par.length, exact, rtol=1e-9)
+    np.testing.assert_allclose(par.alpha, 0.0, atol=1e-3)
+
+
+def test_interpolation_metric_has_no_kernel_and_evaluates_by_numpy():
+    text = """
+domain: {box: [[0, 0], [1, 1]]}
+metric:
+  interpolation: {function: exp(x) * sin(3*y), vertices: 200, sizes: [0.01, 0.5]}
+"""
+    fld = load_metric_text(text)
+    assert fld.scalar_source is None and fld.kernel is None
+    g, _ = fld.evaluate(np.array([[0.5, 0.5]]))
+    assert np.isfinite(g).all()
+
+
+def test_compiled_metric_is_cached_on_disk_and_loads_from_it(tmp_path, monkeypatch):
+    monkeypatch.setenv(kernels.CACHE_ENV, str(tmp_path))
+    src = MetricField((Component((1 + X**2, X * Y / 10, 2 + sympy.sin(Y))),)).scalar_source
+    first = kernels.compile_metric(src, "field_g", "field_gd")
+    modules = list(tmp_path.glob("metric_*.py"))
+    assert len(modules) == 1 and "def field_gd(x, y):" in modules[0].read_text()
+    assert any((tmp_path / "__pycache__").glob("*.nbi"))  # numba's index of machine code
+    again = kernels.compile_metric(src, "field_g", "field_gd")
+    pts = np.array([[0.3, -0.7], [2.0, 1.0]])
+    for cm in (first, again):
+        g, dg = kernels.evaluate(cm, pts, True)
+        np.testing.assert_allclose(g[:, 0, 0], 1 + pts[:, 0] ** 2, rtol=1e-15)
+        np.testing.assert_allclose(dg[:, 1, 1, 1], np.cos(pts[:, 1]), rtol=1e-15)
+
+
+def test_cache_off_compiles_in_memory(tmp_path, monkeypatch):
+    monkeypatch.setenv(kernels.CACHE_ENV, "off")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    src = MetricField((Component((3 + X, sympy.Integer(0), 3 - Y)),)).scalar_source
+    cm = kernels.compile_metric(src, "field_g", "field_gd")
+    g, _ = kernels.evaluate(cm, np.array([[1.0, 2.0]]), False)
+    assert g[0].tolist() == [[4.0, 0.0], [0.0, 1.0]]
+    assert not any(tmp_path.iterdir())
+
+
+def test_powers_of_zero_are_infinite_not_an_exception():
+    # numba raises ZeroDivisionError for 0.0 ** -2; the generated code must not
+    fld = MetricField(
+        (Component((1 + 1 / X**2, sympy.Integer(0), 1 + X ** sympy.Rational(-3, 2))),)
+    )
+    g, _ = fld.evaluate(np.array([[0.0, 0.5]]), check=False)
+    g0, _ = dataclasses.replace(fld, jit=False).evaluate(np.array([[0.0, 0.5]]), check=False)
+    assert np.array_equal(np.isnan(g), np.isnan(g0))
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    a=st.floats(0.5, 5.0),
+    b=st.floats(-0.4, 0.4),
+    k=st.floats(0.1, 6.0),
+    c=st.floats(0.5, 5.0),
+    fn=st.sampled_from(["sin", "cos", "tanh", "exp", "atan"]),
+)
+def test_random_smooth_metrics_compile_to_the_numpy_values(a, b, k, c, fn):
+    f = getattr(sympy, fn)
+    g11 = a + f(k * X) ** 2
+    g12 = b * sympy.cos(k * Y)
+    g22 = c + sympy.Abs(X - Y) / 3 + sympy.Max(X, Y) ** 2
+    fast, ref = both(MetricField((Component((g11, g12, g22)),), box=(-1, -1, 1, 1)))
+    pts = box_points(fast, 300, 5)
+    g, dg = fast.evaluate(pts, derivatives=True, check=False)
+    g0, dg0 = ref.evaluate(pts, derivatives=True, check=False)
+    mag, dmag = scale(g0, dg0)
+    assert np.all(np.abs(g - g0).max(axis=(1, 2)) <= 1e-13 * mag)
+    assert np.all(np.abs(dg - dg0).max(axis=(1, 2, 3)) <= 1e-12 * dmag)
