@@ -559,3 +559,146 @@ def shoot(fn, x0, v0, total, tol, max_iterations, end, vel, ok):
                 break
             if h < 1e-12 * L:
                 break
+
+
+# --------------------------------------------------------------------------- #
+# Lawson flips towards the Delaunay triangulation in the metric                #
+# --------------------------------------------------------------------------- #
+
+
+@njit(**_JIT)
+def _area(pts, i, j, k):
+    """Signed area of triangle (i, j, k), as :func:`curvimesh.mesh.signed_areas`."""
+    ux = pts[j, 0] - pts[i, 0]
+    uy = pts[j, 1] - pts[i, 1]
+    vx = pts[k, 0] - pts[i, 0]
+    vy = pts[k, 1] - pts[i, 1]
+    return 0.5 * (ux * vy - uy * vx)
+
+
+@njit(**_JIT)
+def _in_circle(pts, a, b, c, d, g11, g12, g22):
+    """(in-circle determinant, scale) of :func:`curvimesh.triangulate._in_circle_metric`:
+    d against (a, b, c) after x ↦ Lᵀx, M = L Lᵀ (L as LAPACK's Cholesky), and the
+    squared metric length of a − d."""
+    l00 = math.sqrt(g11)
+    l10 = g12 * (1.0 / l00)
+    l11 = math.sqrt(g22 - l10 * l10)
+    dx, dy = pts[d, 0], pts[d, 1]
+    ux, uy = pts[a, 0] - dx, pts[a, 1] - dy
+    a0, a1 = l00 * ux + l10 * uy, l11 * uy
+    vx, vy = pts[b, 0] - dx, pts[b, 1] - dy
+    b0, b1 = l00 * vx + l10 * vy, l11 * vy
+    wx, wy = pts[c, 0] - dx, pts[c, 1] - dy
+    c0, c1 = l00 * wx + l10 * wy, l11 * wy
+    na, nb, nc = a0 * a0 + a1 * a1, b0 * b0 + b1 * b1, c0 * c0 + c1 * c1
+    det = a0 * (b1 * nc - nb * c1) - a1 * (b0 * nc - nb * c0) + na * (b0 * c1 - b1 * c0)
+    scale = ux * g11 * ux + ux * g12 * uy + uy * g12 * ux + uy * g22 * uy
+    return det, scale
+
+
+@njit(**_JIT)
+def metric_delaunay_flips(fn, pts, corners, nbr, nbr_k, max_rounds, bad):
+    """:func:`curvimesh.triangulate.metric_delaunay`'s rounds of Lawson flips, in place.
+
+    ``corners`` ``(m, 3)`` counter-clockwise; ``nbr[t, k]`` the triangle across
+    local edge k (corners k, k+1) of t, or −1, and ``nbr_k[t, k]`` that edge's
+    local index there. Each round takes every interior edge whose quad is
+    convex and whose fourth corner lies inside the circumcircle of the other
+    three in the metric at the quad's centroid (relative threshold 1e-10 on
+    the determinant), orders them by decreasing violation (ties by the
+    edge's sorted end ids, as the numpy code's edge table), flips greedily
+    those touching no triangle flipped before in the round, and repeats
+    until none is left or ``max_rounds``. Only edges of triangles changed in
+    the last round are measured again. Returns the number of rounds, or −1
+    with the undefined centroid in ``bad`` ``(2,)``.
+    """
+    m = corners.shape[0]
+    n = pts.shape[0]
+    viol = np.zeros((m, 3), dtype=np.bool_)
+    prio = np.zeros((m, 3))
+    dirty = np.ones(m, dtype=np.bool_)
+    used = np.zeros(m, dtype=np.bool_)
+    cap = 3 * m
+    keys = np.empty(cap, dtype=np.int64)
+    pr = np.empty(cap)
+    ct = np.empty(cap, dtype=np.int64)
+    ck = np.empty(cap, dtype=np.int64)
+    for rounds in range(max_rounds):
+        count = 0
+        for t in range(m):
+            for k in range(3):
+                o = nbr[t, k]
+                if o < t:  # boundary, or the edge belongs to the smaller triangle o
+                    continue
+                if dirty[t] or dirty[o]:
+                    k2 = nbr_k[t, k]
+                    a = corners[t, k]
+                    b = corners[t, (k + 1) % 3]
+                    c = corners[t, (k + 2) % 3]
+                    d = corners[o, (k2 + 2) % 3]
+                    viol[t, k] = False
+                    if _area(pts, a, d, c) > 0 and _area(pts, d, b, c) > 0:
+                        cx = 0.25 * (pts[a, 0] + pts[b, 0] + pts[c, 0] + pts[d, 0])
+                        cy = 0.25 * (pts[a, 1] + pts[b, 1] + pts[c, 1] + pts[d, 1])
+                        g = fn(cx, cy)
+                        if not spd3(g):
+                            bad[0], bad[1] = cx, cy
+                            return -1
+                        det, scale = _in_circle(pts, a, b, c, d, g[0], g[1], g[2])
+                        if det > 1e-10 * scale**2:
+                            viol[t, k] = True
+                            prio[t, k] = det / scale**2
+                if viol[t, k]:
+                    a = corners[t, k]
+                    b = corners[t, (k + 1) % 3]
+                    keys[count] = min(a, b) * n + max(a, b)
+                    pr[count] = -prio[t, k]
+                    ct[count] = t
+                    ck[count] = k
+                    count += 1
+        if count == 0:
+            return rounds
+        by_key = np.argsort(keys[:count], kind="mergesort")
+        order = by_key[np.argsort(pr[:count][by_key], kind="mergesort")]
+        dirty[:] = False
+        used[:] = False
+        for q in order:
+            t1, k1 = ct[q], ck[q]
+            t2, k2 = nbr[t1, k1], nbr_k[t1, k1]
+            if used[t1] or used[t2]:
+                continue
+            used[t1] = used[t2] = True
+            dirty[t1] = dirty[t2] = True
+            a = corners[t1, k1]
+            b = corners[t1, (k1 + 1) % 3]
+            c = corners[t1, (k1 + 2) % 3]
+            d = corners[t2, (k2 + 2) % 3]
+            # outer edges a-d (of t2) and c-a (of t1) go to t1' = (a, d, c),
+            # d-b (of t2) and b-c (of t1) to t2' = (d, b, c):
+            #         c                 c
+            #       / | \\             / \\
+            #      a t1|t2 b   -->    a --- b
+            #       \\ | /             \\ /
+            #         d                 d
+            o_ad, k_ad = nbr[t2, (k2 + 1) % 3], nbr_k[t2, (k2 + 1) % 3]
+            o_db, k_db = nbr[t2, (k2 + 2) % 3], nbr_k[t2, (k2 + 2) % 3]
+            o_bc, k_bc = nbr[t1, (k1 + 1) % 3], nbr_k[t1, (k1 + 1) % 3]
+            o_ca, k_ca = nbr[t1, (k1 + 2) % 3], nbr_k[t1, (k1 + 2) % 3]
+            corners[t1, 0], corners[t1, 1], corners[t1, 2] = a, d, c
+            corners[t2, 0], corners[t2, 1], corners[t2, 2] = d, b, c
+            nbr[t1, 0], nbr_k[t1, 0] = o_ad, k_ad
+            nbr[t1, 1], nbr_k[t1, 1] = t2, 2
+            nbr[t1, 2], nbr_k[t1, 2] = o_ca, k_ca
+            nbr[t2, 0], nbr_k[t2, 0] = o_db, k_db
+            nbr[t2, 1], nbr_k[t2, 1] = o_bc, k_bc
+            nbr[t2, 2], nbr_k[t2, 2] = t1, 1
+            if o_ad >= 0:
+                nbr[o_ad, k_ad], nbr_k[o_ad, k_ad] = t1, 0
+            if o_ca >= 0:
+                nbr[o_ca, k_ca], nbr_k[o_ca, k_ca] = t1, 2
+            if o_db >= 0:
+                nbr[o_db, k_db], nbr_k[o_db, k_db] = t2, 0
+            if o_bc >= 0:
+                nbr[o_bc, k_bc], nbr_k[o_bc, k_bc] = t2, 1
+    return max_rounds

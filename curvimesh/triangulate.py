@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import Delaunay, QhullError
 
+from curvimesh import kernels
 from curvimesh.errors import WorkError
 from curvimesh.mesh import Mesh, apply_flips, flip_candidates, independent_flips, signed_areas
 
@@ -83,6 +84,9 @@ def metric_delaunay(field, mesh: Mesh, *, max_rounds: int = 200) -> Mesh:
     anisotropic Delaunay triangulation (Borouchaki, George et al. 1997).
     """
     pts = np.asarray(mesh.points)
+    cm = field.kernel
+    if cm is not None and len(mesh.triangles):
+        return _metric_delaunay_compiled(field, cm, mesh, max_rounds)
     corners = np.array(mesh.corners)
     for _ in range(max_rounds):
         cur = Mesh(pts, corners, mesh.box)
@@ -106,4 +110,18 @@ def metric_delaunay(field, mesh: Mesh, *, max_rounds: int = 200) -> Mesh:
             independent_flips(t1[cand], t2[cand], det[viol] / scale[viol] ** 2, len(corners))
         ]
         corners = apply_flips(corners, chosen, t1, t2, a, b, c, d)
+    return Mesh(pts, corners, mesh.box)
+
+
+def _metric_delaunay_compiled(field, cm, mesh: Mesh, max_rounds: int) -> Mesh:
+    """:func:`metric_delaunay` by :func:`curvimesh.kernels.metric_delaunay_flips` (the
+    same rounds, flips and order; only the edges of changed triangles measured again)."""
+    pts = np.ascontiguousarray(mesh.points, dtype=float)
+    corners = np.array(mesh.corners, dtype=np.int64)
+    nbr = np.array(mesh.neighbours, dtype=np.int64)
+    t = np.repeat(np.arange(len(corners)), 3).reshape(-1, 3)
+    nbr_k = np.where(nbr >= 0, np.argmax(mesh.neighbours[nbr] == t[..., None], axis=2), -1)
+    bad = np.zeros(2)
+    if kernels.metric_delaunay_flips(cm.g, pts, corners, nbr, nbr_k, max_rounds, bad) < 0:
+        field.tensor(bad[None])  # raises MetricError naming the point
     return Mesh(pts, corners, mesh.box)

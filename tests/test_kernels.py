@@ -193,3 +193,55 @@ def test_random_smooth_metrics_compile_to_the_numpy_values(a, b, k, c, fn):
     mag, dmag = scale(g0, dg0)
     assert np.all(np.abs(g - g0).max(axis=(1, 2)) <= 1e-13 * mag)
     assert np.all(np.abs(dg - dg0).max(axis=(1, 2, 3)) <= 1e-12 * dmag)
+
+
+def _random_cloud(fld: MetricField, n: int, seed: int) -> np.ndarray:
+    """The box corners, points on its sides and n random inner points."""
+    xmin, ymin, xmax, ymax = fld.box
+    s = np.linspace(0.0, 1.0, 12)[1:-1]
+    sides = np.concatenate(
+        [
+            np.column_stack([xmin + s * (xmax - xmin), np.full_like(s, ymin)]),
+            np.column_stack([xmin + s * (xmax - xmin), np.full_like(s, ymax)]),
+            np.column_stack([np.full_like(s, xmin), ymin + s * (ymax - ymin)]),
+            np.column_stack([np.full_like(s, xmax), ymin + s * (ymax - ymin)]),
+        ]
+    )
+    corners = np.array([[xmin, ymin], [xmax, ymin], [xmax, ymax], [xmin, ymax]])
+    return np.concatenate([corners, sides, box_points(fld, n, seed)])
+
+
+@pytest.mark.parametrize("name", ["toy", "three_toys", "constant_aniso"])
+def test_compiled_flips_give_the_numpy_triangulation(name):
+    from curvimesh.mesh import is_conforming, signed_areas
+    from curvimesh.triangulate import delaunay, metric_delaunay
+
+    fast, ref = both(load_metric(METRICS / f"{name}.yaml"))
+    mesh = delaunay(_random_cloud(fast, 3000, 21), box=fast.box)
+    got, want = metric_delaunay(fast, mesh), metric_delaunay(ref, mesh)
+    assert got.corners.tolist() == want.corners.tolist()
+    assert is_conforming(got) and (signed_areas(got.points, got.corners) > 0).all()
+    assert got.corners.tolist() != mesh.corners.tolist()  # the metric made it flip
+
+
+def test_compiled_flips_on_a_regular_grid_break_ties_as_numpy():
+    # a constant metric on a lattice: every quad is co-circular in the metric up to
+    # rounding, so the order of equal violations decides
+    from curvimesh.triangulate import delaunay, metric_delaunay
+
+    g = (sympy.Float(4.0), sympy.Float(1.5), sympy.Float(1.0))
+    fast, ref = both(MetricField((Component(g),), box=(0.0, 0.0, 1.0, 1.0)))
+    gx, gy = np.meshgrid(np.linspace(0, 1, 15), np.linspace(0, 1, 15))
+    mesh = delaunay(np.column_stack([gx.ravel(), gy.ravel()]), box=fast.box)
+    assert (
+        metric_delaunay(fast, mesh).corners.tolist() == metric_delaunay(ref, mesh).corners.tolist()
+    )
+
+
+def test_compiled_flips_name_an_undefined_centroid():
+    from curvimesh.triangulate import delaunay, metric_delaunay
+
+    fld = MetricField((Component((1 + X, sympy.Integer(0), 1 + X)),), box=(-2.0, 0.0, 1.0, 1.0))
+    mesh = delaunay(_random_cloud(fld, 50, 2), box=fld.box)
+    with pytest.raises(MetricError, match="not finite and positive definite at"):
+        metric_delaunay(fld, mesh)
