@@ -36,6 +36,11 @@ import sys
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
+# GNU OpenMP (numba's threading layer where libgomp is found) spins while it waits
+# for its threads: with another process on the other core, adapt of the 9,746-vertex
+# toy took 19 s instead of 8; waiting passively, 8 s. Set before numba starts it.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 import numba
 import numpy as np
 from numba import float64, njit, prange, types
@@ -47,6 +52,31 @@ SIG_G = types.UniTuple(float64, 3)(float64, float64)
 SIG_GD = types.UniTuple(float64, 9)(float64, float64)
 
 _JIT = {"cache": True, "error_model": "numpy", "nogil": True}
+
+
+#: Rows from which a row kernel spreads its rows over numba's threads
+#: (``NUMBA_NUM_THREADS``, by default one per core). Below, starting the threads
+#: costs more than it saves, and far more when another process holds the other
+#: core: adapt of the 9,746-vertex toy took 24 s with every call spread over two
+#: threads and 8 s on one while a second job ran.
+PARALLEL_ROWS = 20_000
+
+
+def _row_kernel(py: Callable) -> Callable:
+    """A kernel whose rows (``prange``) are independent, compiled twice: serial, and
+    parallel for calls of at least :data:`PARALLEL_ROWS` rows (same results).
+
+    The rows are those of the second argument (after the metric function)."""
+    serial = njit(**_JIT)(py)
+    parallel = njit(parallel=True, **_JIT)(py)
+
+    def run(fn, rows, *args):
+        big = rows.shape[0] >= PARALLEL_ROWS and numba.get_num_threads() > 1
+        return (parallel if big else serial)(fn, rows, *args)
+
+    run.__doc__, run.__name__ = py.__doc__, py.__name__
+    run.serial, run.parallel = serial, parallel
+    return run
 
 
 # --------------------------------------------------------------------------- #
@@ -258,7 +288,7 @@ _VERSION = f"{numba.__version__}:" + hashlib.sha256(Path(__file__).read_bytes())
 # --------------------------------------------------------------------------- #
 
 
-@njit(parallel=True, **_JIT)
+@_row_kernel
 def _eval_g(fn, pts, out):
     for i in prange(pts.shape[0]):
         g = fn(pts[i, 0], pts[i, 1])
@@ -268,7 +298,7 @@ def _eval_g(fn, pts, out):
         out[i, 1, 1] = g[2]
 
 
-@njit(parallel=True, **_JIT)
+@_row_kernel
 def _eval_gd(fn, pts, out, dout):
     for i in prange(pts.shape[0]):
         d = fn(pts[i, 0], pts[i, 1])
@@ -322,7 +352,7 @@ def _parabola_length(fn, ax, ay, bx, by, mx, my, t, w):
     return acc
 
 
-@njit(parallel=True, **_JIT)
+@_row_kernel
 def parabola_lengths(fn, x0, x1, xm, t, w, out):
     """Lengths of parabolas (rows of x0, x1, xm ``(n, 2)``) by the rule (t, w) into ``out``."""
     for i in prange(x0.shape[0]):
@@ -341,7 +371,7 @@ def _offset_length(fn, x0, x1, i, alpha, t, w):
     return _parabola_length(fn, x0[i, 0], x0[i, 1], x1[i, 0], x1[i, 1], mx, my, t, w)
 
 
-@njit(parallel=True, **_JIT)
+@_row_kernel
 def shortest_parabolas(fn, x0, x1, grid, t, w, tol, max_iter, alpha, length):
     """The search of :func:`curvimesh.geodesic.shortest_parabola`, one row at a time.
 
@@ -400,7 +430,7 @@ def shortest_parabolas(fn, x0, x1, grid, t, w, tol, max_iter, alpha, length):
         length[i] = fb
 
 
-@njit(parallel=True, **_JIT)
+@_row_kernel
 def chord_bounds(fn, a, b, probes, out):
     """:func:`curvimesh.geodesic.chord_lower_bound` row by row: |d| / max over the
     probes (t, s) of sqrt(νᵀ g⁻¹ ν) at a + t d + s d×e₃."""
@@ -516,7 +546,7 @@ def _dp_step(fn, x, y, vx, vy, h):
     return nx, ny, nvx, nvy, err
 
 
-@njit(parallel=True, **_JIT)
+@_row_kernel
 def shoot(fn, x0, v0, total, tol, max_iterations, end, vel, ok):
     """:func:`curvimesh.geodesic.shoot`'s adaptive Dormand–Prince loop, one row at a time.
 
@@ -677,9 +707,9 @@ def metric_delaunay_flips(fn, pts, corners, nbr, nbr_k, max_rounds, bad):
             # outer edges a-d (of t2) and c-a (of t1) go to t1' = (a, d, c),
             # d-b (of t2) and b-c (of t1) to t2' = (d, b, c):
             #         c                 c
-            #       / | \\             / \\
+            #       / | \             / \
             #      a t1|t2 b   -->    a --- b
-            #       \\ | /             \\ /
+            #       \ | /             \ /
             #         d                 d
             o_ad, k_ad = nbr[t2, (k2 + 1) % 3], nbr_k[t2, (k2 + 1) % 3]
             o_db, k_db = nbr[t2, (k2 + 2) % 3], nbr_k[t2, (k2 + 2) % 3]
