@@ -516,6 +516,72 @@ def bounded_lengths(
     computed). The search is :func:`shortest_parabola` with a 5-value scan
     and α to 2e-3 (the lengths of its fixed rule).
     """
+    length, mid, s = _bounds(field, a, b, short, long, straight_order)
+    if s.size:
+        par = shortest_parabola(
+            field, a[s], b[s], scan=BOUNDED_SCAN, alpha_tol=BOUNDED_TOL, exact_length=False
+        )
+        length[s], mid[s] = par.length, par.mid
+    return length, mid
+
+
+#: The search of :func:`bounded_lengths` and :func:`parabola_verdicts`: scan, α tolerance.
+BOUNDED_SCAN, BOUNDED_TOL = 5, 2e-3
+
+
+def parabola_verdicts(
+    field: MetricField,
+    a: NDArray,
+    b: NDArray,
+    *,
+    short: float | None = None,
+    long: float | NDArray | None = None,
+    straight_order: int = 5,
+) -> NDArray[np.int8]:
+    """Whether the shortest parabola from a to b is shorter than ``short`` (−1),
+    longer than ``long`` (+1, a number or one per pair) or neither (0), ``(p,)``.
+
+    The verdicts of :func:`bounded_lengths`' lengths, with the same bounds first;
+    where the field is compiled, the search stops as soon as its verdict is
+    known (:func:`curvimesh.kernels.classify_parabolas`: a length below
+    ``short`` seen, or the bracket's convex floor above ``long``, or a length
+    at most ``long`` seen with the floor at least ``short``).
+    """
+    lo = -np.inf if short is None else short
+    hi = np.broadcast_to(np.inf if long is None else np.asarray(long, dtype=float), (len(a),))
+    length, _, s = _bounds(field, a, b, short, long, straight_order)
+    verdict = np.where(length < lo, -1, np.where(length > hi, 1, 0)).astype(np.int8)
+    if s.size == 0:
+        return verdict
+    cm = field.kernel
+    if cm is None:
+        par = shortest_parabola(
+            field, a[s], b[s], scan=BOUNDED_SCAN, alpha_tol=BOUNDED_TOL, exact_length=False
+        )
+        verdict[s] = np.where(par.length < lo, -1, np.where(par.length > hi[s], 1, 0))
+        return verdict
+    grid = np.linspace(-0.5, 0.5, BOUNDED_SCAN)
+    t, w = _gauss(2, 5)
+    out = np.empty(s.size, dtype=np.int64)
+    kernels.classify_parabolas(
+        cm.g,
+        *_rows(a[s], b[s]),
+        grid,
+        t,
+        w,
+        BOUNDED_TOL,
+        60,
+        float(lo),
+        np.ascontiguousarray(hi[s]),
+        out,
+    )
+    verdict[s] = out
+    return verdict
+
+
+def _bounds(field, a, b, short, long, straight_order):
+    """The bound stage of :func:`bounded_lengths`: lengths (bounds) ``(p,)``, chord
+    midpoints ``(p, 2)`` and the rows whose parabola must be searched."""
     n = len(a)
     mid = 0.5 * (a + b)
     length = np.empty(n)
@@ -535,8 +601,4 @@ def bounded_lengths(
         search |= length > long
     if short is not None:
         search[rows] |= (upper >= short) & ~far[rows]
-    s = np.flatnonzero(search)
-    if s.size:
-        par = shortest_parabola(field, a[s], b[s], scan=5, alpha_tol=2e-3, exact_length=False)
-        length[s], mid[s] = par.length, par.mid
-    return length, mid
+    return length, mid, np.flatnonzero(search)

@@ -371,63 +371,100 @@ def _offset_length(fn, x0, x1, i, alpha, t, w):
     return _parabola_length(fn, x0[i, 0], x0[i, 1], x1[i, 0], x1[i, 1], mx, my, t, w)
 
 
-@_row_kernel
-def shortest_parabolas(fn, x0, x1, grid, t, w, tol, max_iter, alpha, length):
-    """The search of :func:`curvimesh.geodesic.shortest_parabola`, one row at a time.
+@njit(**_JIT)
+def _convex_floor(a, b, c, fa, fb, fc):
+    """A lower bound of a convex f on [a, c] from f at a ≤ b ≤ c with fb ≤ fa, fc:
+    the secants b–c and a–b, extended to a and to c (−inf when b is an end)."""
+    if not (a < b < c):
+        return -math.inf
+    return min(fb - (fc - fb) * (b - a) / (c - b), fb - (fa - fb) * (c - b) / (b - a))
+
+
+@njit(**_JIT)
+def _search(fn, x0, x1, i, grid, t, w, tol, max_iter, decide, short, long):
+    """The shortest-parabola search of one row; returns (α, length, verdict).
 
     A scan of α over ``grid``, then safeguarded parabolic interpolation
     (Brent 1973) in the bracket around the best scanned value, golden-section
     steps when the vertex is unusable or every third iteration, until the
-    bracket is at most ``tol`` wide. Writes α and the rule's length at it.
+    bracket is at most ``tol`` wide; the length is the best value seen.
+
+    With ``decide``, the search stops as soon as the verdict is known, the
+    length being assumed convex in α on the bracket (Brent's own model): −1
+    once a length below ``short`` is seen, +1 once the bracket's convex floor
+    (:func:`_convex_floor`) is above ``long``, 0 once a length at most ``long``
+    is seen and the floor is at least ``short``. Otherwise the verdict is
+    that of the final length.
     """
     cgold = 0.3819660112501051
     scan = grid.shape[0]
-    for i in prange(x0.shape[0]):
-        vals = np.empty(scan)
-        best = 0
-        for j in range(scan):
-            vals[j] = _offset_length(fn, x0, x1, i, grid[j], t, w)
-            if vals[j] < vals[best]:  # the first smallest, as np.argmin
-                best = j
-        ia = max(best - 1, 0)
-        ic = min(best + 1, scan - 1)
-        a, b, c = grid[ia], grid[best], grid[ic]
-        fa, fb, fc = vals[ia], vals[best], vals[ic]
-        for it in range(max_iter):
-            if not (c - a) > tol:
-                break
-            p = (b - a) ** 2 * (fb - fc) - (b - c) ** 2 * (fb - fa)
-            q = 2.0 * ((b - a) * (fb - fc) - (b - c) * (fb - fa))
-            u = b - p / q
-            eps = 0.25 * tol
-            golden = (
-                not math.isfinite(u)
-                or u <= a + eps
-                or u >= c - eps
-                or abs(u - b) < eps
-                or it % 3 == 2
-            )
-            if golden:
-                if (c - b) >= (b - a):
-                    u = b + cgold * (c - b)
-                else:
-                    u = b - cgold * (b - a)
-            fu = _offset_length(fn, x0, x1, i, u, t, w)
-            if not math.isfinite(fu):
-                fu = math.inf
-            if fu < fb:
-                if u > b:
-                    a, fa = b, fb
-                else:
-                    c, fc = b, fb
-                b, fb = u, fu
+    vals = np.empty(scan)
+    best = 0
+    for j in range(scan):
+        vals[j] = _offset_length(fn, x0, x1, i, grid[j], t, w)
+        if vals[j] < vals[best]:  # the first smallest, as np.argmin
+            best = j
+    ia = max(best - 1, 0)
+    ic = min(best + 1, scan - 1)
+    a, b, c = grid[ia], grid[best], grid[ic]
+    fa, fb, fc = vals[ia], vals[best], vals[ic]
+    for it in range(max_iter):
+        if decide:
+            if fb < short:
+                return b, fb, -1
+            floor = _convex_floor(a, b, c, fa, fb, fc)
+            if floor > long:
+                return b, fb, 1
+            if fb <= long and floor >= short:
+                return b, fb, 0
+        if not (c - a) > tol:
+            break
+        p = (b - a) ** 2 * (fb - fc) - (b - c) ** 2 * (fb - fa)
+        q = 2.0 * ((b - a) * (fb - fc) - (b - c) * (fb - fa))
+        u = b - p / q
+        eps = 0.25 * tol
+        golden = (
+            not math.isfinite(u) or u <= a + eps or u >= c - eps or abs(u - b) < eps or it % 3 == 2
+        )
+        if golden:
+            if (c - b) >= (b - a):
+                u = b + cgold * (c - b)
             else:
-                if u > b:
-                    c, fc = u, fu
-                else:
-                    a, fa = u, fu
-        alpha[i] = b
-        length[i] = fb
+                u = b - cgold * (b - a)
+        fu = _offset_length(fn, x0, x1, i, u, t, w)
+        if not math.isfinite(fu):
+            fu = math.inf
+        if fu < fb:
+            if u > b:
+                a, fa = b, fb
+            else:
+                c, fc = b, fb
+            b, fb = u, fu
+        else:
+            if u > b:
+                c, fc = u, fu
+            else:
+                a, fa = u, fu
+    verdict = -1 if fb < short else (1 if fb > long else 0)
+    return b, fb, verdict
+
+
+@_row_kernel
+def shortest_parabolas(fn, x0, x1, grid, t, w, tol, max_iter, alpha, length):
+    """The search of :func:`curvimesh.geodesic.shortest_parabola`, one row at a time
+    (:func:`_search`): writes α and the rule's length at it."""
+    for i in prange(x0.shape[0]):
+        alpha[i], length[i], _ = _search(
+            fn, x0, x1, i, grid, t, w, tol, max_iter, False, -math.inf, math.inf
+        )
+
+
+@_row_kernel
+def classify_parabolas(fn, x0, x1, grid, t, w, tol, max_iter, short, long, verdict):
+    """Whether the shortest parabola of each row is below ``short`` (−1), above
+    ``long[i]`` (+1) or neither (0), by :func:`_search` stopping at the verdict."""
+    for i in prange(x0.shape[0]):
+        _, _, verdict[i] = _search(fn, x0, x1, i, grid, t, w, tol, max_iter, True, short, long[i])
 
 
 @_row_kernel

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from curvimesh.geodesic import bounded_lengths, shortest_parabola
+from curvimesh.geodesic import parabola_verdicts, shortest_parabola
 from curvimesh.mesh import Mesh, signed_areas
 from curvimesh.metric import MetricField
 from curvimesh.triangulate import metric_delaunay
@@ -120,10 +120,10 @@ def _update_bad(
         return
     # the parabola is searched only where the bounds leave the answer open
     longest = None if old_length is None else np.maximum(max_length, old_length[rows])
-    length, _ = bounded_lengths(
+    verdict = parabola_verdicts(
         field, pts[edges[rows, 0]], pts[edges[rows, 1]], short=min_dist, long=longest
     )
-    bad[rows] = (length < min_dist) | (length > (np.inf if longest is None else longest))
+    bad[rows] = verdict != 0
 
 
 def relocate(

@@ -245,3 +245,22 @@ def test_compiled_flips_name_an_undefined_centroid():
     mesh = delaunay(_random_cloud(fld, 50, 2), box=fld.box)
     with pytest.raises(MetricError, match="not finite and positive definite at"):
         metric_delaunay(fld, mesh)
+
+
+@pytest.mark.parametrize("name", ["toy", "three_toys", "front"])
+def test_verdicts_stopping_early_match_full_searches(name):
+    fast, ref = both(load_metric(METRICS / f"{name}.yaml"))
+    a = box_points(fast, 3000, 31)
+    rng = np.random.default_rng(32)
+    # ends at metric distances around the thresholds, in every direction
+    shot = geo.shoot(fast, a, rng.normal(size=(len(a), 2)), rng.uniform(0.4, 1.8, len(a)))
+    b = np.where(shot.ok[:, None], shot.end, a + 1e-3)
+    long = rng.uniform(1.0, 1.5, len(a))
+    got = geo.parabola_verdicts(fast, a, b, short=0.7, long=long)
+    want = geo.parabola_verdicts(ref, a, b, short=0.7, long=long)
+    length, _ = geo.bounded_lengths(fast, a, b, short=0.7, long=long)
+    from_lengths = np.where(length < 0.7, -1, np.where(length > long, 1, 0))
+    assert np.array_equal(got, want) and np.array_equal(got, from_lengths)
+    assert min((got == v).sum() for v in (-1, 0, 1)) > 100  # all three verdicts occur
+    one_sided = geo.parabola_verdicts(fast, a, b, short=0.7)
+    assert np.array_equal(one_sided, np.where(length < 0.7, -1, 0))
