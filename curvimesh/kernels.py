@@ -769,3 +769,73 @@ def metric_delaunay_flips(fn, pts, corners, nbr, nbr_k, max_rounds, bad):
             if o_bc >= 0:
                 nbr[o_bc, k_bc], nbr_k[o_bc, k_bc] = t2, 1
     return max_rounds
+
+
+# --------------------------------------------------------------------------- #
+# R-tree box queries                                                           #
+# --------------------------------------------------------------------------- #
+
+
+@njit(**_JIT)
+def _rtree_visit(boxes, first, count, leaf, ids, roots, pts, lo_x, lo_y, hi_x, hi_y, out, n_out):
+    """Ids of the points in [lo, hi] (closed) over the trees of ``roots``; writes them to
+    ``out`` from 0 when ``n_out`` > 0 (else only counts) and returns their number."""
+    stack = np.empty(64, dtype=np.int64)
+    found = 0
+    for r in range(roots.shape[0]):
+        top = 0
+        stack[0] = roots[r]
+        top = 1
+        while top > 0:
+            top -= 1
+            node = stack[top]
+            if boxes[node, 0] > hi_x or boxes[node, 2] < lo_x:
+                continue
+            if boxes[node, 1] > hi_y or boxes[node, 3] < lo_y:
+                continue
+            start = first[node]
+            if leaf[node]:
+                for k in range(start, start + count[node]):
+                    p = ids[k]
+                    x, y = pts[p, 0], pts[p, 1]
+                    if lo_x <= x <= hi_x and lo_y <= y <= hi_y:
+                        if n_out > 0:
+                            out[found] = p
+                        found += 1
+            else:
+                for k in range(start, start + count[node]):
+                    if top == stack.shape[0]:
+                        grown = np.empty(2 * top, dtype=np.int64)
+                        grown[:top] = stack[:top]
+                        stack = grown
+                    stack[top] = k
+                    top += 1
+    return found
+
+
+@_row_kernel
+def rtree_count(mins, maxs, boxes, first, count, leaf, ids, roots, pts, counts):
+    """Number of indexed points in each query box ``[mins[q], maxs[q]]`` into ``counts``.
+
+    The index is packed R-trees (:mod:`curvimesh.spatial`): node bounding boxes
+    (xmin, ymin, xmax, ymax), the first child and the number of children of
+    each node (nodes for inner nodes, positions in ``ids`` for leaves)."""
+    dummy = np.empty(0, dtype=np.int64)
+    for q in prange(mins.shape[0]):
+        counts[q] = _rtree_visit(
+            boxes, first, count, leaf, ids, roots, pts,
+            mins[q, 0], mins[q, 1], maxs[q, 0], maxs[q, 1], dummy, 0,
+        )  # fmt: skip
+
+
+@_row_kernel
+def rtree_fill(mins, maxs, boxes, first, count, leaf, ids, roots, pts, offsets, hits):
+    """The ids of :func:`rtree_count`'s points, query after query from ``offsets``,
+    each query's ids in ascending order."""
+    for q in prange(mins.shape[0]):
+        seg = hits[offsets[q] : offsets[q + 1]]
+        n = _rtree_visit(
+            boxes, first, count, leaf, ids, roots, pts,
+            mins[q, 0], mins[q, 1], maxs[q, 0], maxs[q, 1], seg, offsets[q + 1] - offsets[q],
+        )  # fmt: skip
+        seg[:n].sort()

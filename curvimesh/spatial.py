@@ -1,27 +1,117 @@
-"""A growing set of points with batched box queries (the only user of ``rtree``).
+"""A growing set of points with batched box queries: packed R-trees.
 
-Algorithm 1 of the paper keeps accepted points in an R-tree (Beckmann et
-al. 1990) to find the ones near a tentative point. Points arrive in batches
-(one front of the sampling at a time); each batch is bulk-loaded. To keep
-queries cheap as batches accumulate, the index is a logarithmic family of
-bulk-loaded R-trees (Bentley & Saxe 1980): when a new batch is added, trees
-of no larger size are merged into it and rebuilt, so there are O(log n)
-trees and each point is re-inserted O(log n) times.
+Algorithm 1 of the paper keeps accepted points in an R-tree (Guttman 1984)
+to find the ones near a tentative point. Points arrive in batches (one front
+of the sampling at a time); each batch is packed into a static R-tree by
+Sort-Tile-Recursive (Leutenegger, Lopez & Edgington 1997): points sorted by
+x into vertical slices, each slice by y, runs of :data:`CAPACITY` making the
+leaves, and the same packing of the nodes' centres for every level above.
+To keep queries cheap as batches accumulate, the index is a logarithmic
+family of packed trees (Bentley & Saxe 1980): when a new batch is added,
+trees of no larger size are merged into it and packed again, so there are
+O(log n) trees and each point is packed O(log n) times. Queries run in
+compiled code (:func:`curvimesh.kernels.rtree_count`, ``rtree_fill``), two
+passes: count, then fill.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from rtree import index as rtree_index
+
+from curvimesh import kernels
+
+#: Children per node (points per leaf).
+CAPACITY = 16
 
 
-def _bulk(ids: NDArray, pts: NDArray) -> rtree_index.Index:
-    prop = rtree_index.Property()
-    prop.dimension = 2
-    ids = np.ascontiguousarray(ids, dtype=np.int64)
+def _str_order(centre: NDArray, capacity: int) -> NDArray:
+    """Sort-Tile-Recursive order of boxes by their centres ``(k, 2)``: ceil(sqrt(k / B))
+    slices by x, each sorted by y, so that runs of B make compact nodes."""
+    k = len(centre)
+    slices = max(1, int(np.ceil(np.sqrt(k / capacity))))
+    per_slice = slices * capacity
+    by_x = np.argsort(centre[:, 0], kind="stable")
+    slice_of = np.empty(k, dtype=np.int64)
+    slice_of[by_x] = np.arange(k) // per_slice
+    return np.lexsort((centre[:, 1], slice_of))
+
+
+class PackedTree:
+    """One static R-tree over points ``(n, 2)`` with ids ``(n,)``, packed by STR.
+
+    ``boxes`` ``(N, 4)`` (xmin, ymin, xmax, ymax) of the nodes, leaves first
+    then each level up, the root last; ``first``/``count`` their children (node
+    indices, or positions in ``ids`` for a leaf); ``leaf`` ``(N,)``.
+    """
+
+    def __init__(self, ids: NDArray, pts: NDArray, capacity: int = CAPACITY) -> None:
+        order = _str_order(pts, capacity)
+        self.ids = np.ascontiguousarray(ids[order], dtype=np.int64)
+        p = pts[order]
+        starts = np.arange(0, len(p), capacity)
+        boxes = np.column_stack(
+            [
+                np.minimum.reduceat(p[:, 0], starts),
+                np.minimum.reduceat(p[:, 1], starts),
+                np.maximum.reduceat(p[:, 0], starts),
+                np.maximum.reduceat(p[:, 1], starts),
+            ]
+        )
+        levels = [(boxes, starts, np.diff(np.append(starts, len(p))))]
+        while len(levels[-1][0]) > 1:
+            child, offset = levels[-1][0], sum(len(lv[0]) for lv in levels[:-1])
+            order = _str_order(0.5 * (child[:, :2] + child[:, 2:]), capacity)
+            # the level below is renumbered in STR order, so each parent's children are a run
+            levels[-1] = tuple(a[order] for a in levels[-1])
+            child = levels[-1][0]
+            starts = np.arange(0, len(child), capacity)
+            boxes = np.column_stack(
+                [
+                    np.minimum.reduceat(child[:, 0], starts),
+                    np.minimum.reduceat(child[:, 1], starts),
+                    np.maximum.reduceat(child[:, 2], starts),
+                    np.maximum.reduceat(child[:, 3], starts),
+                ]
+            )
+            levels.append((boxes, offset + starts, np.diff(np.append(starts, len(child)))))
+        self.boxes = np.ascontiguousarray(np.concatenate([lv[0] for lv in levels]))
+        self.first = np.concatenate([lv[1] for lv in levels]).astype(np.int64)
+        self.count = np.concatenate([lv[2] for lv in levels]).astype(np.int64)
+        self.leaf = np.zeros(len(self.boxes), dtype=np.bool_)
+        self.leaf[: len(levels[0][0])] = True
+        self.root = len(self.boxes) - 1
+
+
+def _query(trees: list[PackedTree], pts: NDArray, mins: NDArray, maxs: NDArray):
+    """Pairs (query index, point id) of the points of ``trees`` in each box, sorted."""
+    mins = np.ascontiguousarray(mins, dtype=np.float64).reshape(-1, 2)
+    maxs = np.ascontiguousarray(maxs, dtype=np.float64).reshape(-1, 2)
+    if not trees or len(mins) == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    # the trees side by side: node indices shifted, ids positions shifted
+    node_base = np.cumsum([0] + [len(t.boxes) for t in trees[:-1]])
+    id_base = np.cumsum([0] + [len(t.ids) for t in trees[:-1]])
+    boxes = np.concatenate([t.boxes for t in trees])
+    first = np.concatenate(
+        [
+            np.where(t.leaf, t.first + ib, t.first + nb)
+            for t, nb, ib in zip(trees, node_base, id_base, strict=True)
+        ]
+    )
+    count = np.concatenate([t.count for t in trees])
+    leaf = np.concatenate([t.leaf for t in trees])
+    ids = np.concatenate([t.ids for t in trees])
+    roots = np.array([t.root + nb for t, nb in zip(trees, node_base, strict=True)], dtype=np.int64)
     pts = np.ascontiguousarray(pts, dtype=np.float64)
-    return rtree_index.Index((ids, pts, pts), properties=prop)
+    counts = np.empty(len(mins), dtype=np.int64)
+    args = (boxes, first, count, leaf, ids, roots, pts)
+    kernels.rtree_count(mins, maxs, *args, counts)
+    offsets = np.zeros(len(mins) + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    hits = np.empty(offsets[-1], dtype=np.int64)
+    kernels.rtree_fill(mins, maxs, *args, offsets, hits)
+    return np.repeat(np.arange(len(mins)), counts), hits
 
 
 class PointIndex:
@@ -35,7 +125,7 @@ class PointIndex:
     """
 
     def __init__(self) -> None:
-        self._trees: list[tuple[int, NDArray, rtree_index.Index]] = []
+        self._trees: list[PackedTree] = []
         self._chunks: list[NDArray] = []
         self.size = 0
 
@@ -47,10 +137,10 @@ class PointIndex:
         ids = np.arange(self.size, self.size + len(pts))
         self._chunks.append(pts)
         self.size += len(pts)
-        while self._trees and len(self._trees[-1][1]) <= len(ids):
-            _, old_ids, _ = self._trees.pop()
-            ids = np.concatenate([old_ids, ids])
-        self._trees.append((len(ids), ids, _bulk(ids, self.points[ids])))
+        while self._trees and len(self._trees[-1].ids) <= len(ids):
+            ids = np.concatenate([self._trees.pop().ids, ids])
+        ids = np.sort(ids)
+        self._trees.append(PackedTree(ids, self.points[ids]))
 
     @property
     def points(self) -> NDArray:
@@ -60,41 +150,27 @@ class PointIndex:
         return self._chunks[0] if self._chunks else np.zeros((0, 2))
 
     def query(self, mins: NDArray, maxs: NDArray) -> tuple[NDArray, NDArray]:
-        """Points inside each query box: pairs ``(query index, point id)``, both ``(p,)``.
+        """Points inside each query box (boundary included): pairs ``(query index, point id)``,
+        both ``(p,)``, sorted by query index, then point id.
 
-        Boxes are ``mins``, ``maxs`` ``(q, 2)``. Pairs come sorted by query
-        index, then point id (deterministic).
+        Boxes are ``mins``, ``maxs`` ``(q, 2)``.
         """
-        mins = np.ascontiguousarray(mins, dtype=np.float64).reshape(-1, 2)
-        maxs = np.ascontiguousarray(maxs, dtype=np.float64).reshape(-1, 2)
-        qs, hits = [], []
-        for _, _, tree in self._trees:
-            ids, counts = tree.intersection_v(mins, maxs)
-            qs.append(np.repeat(np.arange(len(mins)), counts.astype(np.int64)))
-            hits.append(np.asarray(ids, dtype=np.int64))
-        if not qs:
-            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-        q = np.concatenate(qs)
-        h = np.concatenate(hits)
-        order = np.lexsort((h, q))
-        return q[order], h[order]
+        return _query(self._trees, self.points, mins, maxs)
 
 
 def pairs_within_boxes(pts: NDArray, radius: NDArray) -> tuple[NDArray, NDArray]:
     """Pairs (i, j), i < j, where one point lies in the other's box of half-width ``radius``.
 
-    Builds one bulk-loaded R-tree over ``pts`` ``(n, 2)`` and queries the
-    boxes [p − r, p + r] of every point; ``radius`` is ``(n,)`` or ``(n, 2)``.
+    Packs one R-tree over ``pts`` ``(n, 2)`` and queries the boxes [p − r, p + r]
+    of every point; ``radius`` is ``(n,)`` or ``(n, 2)``. Sorted by i, then j.
     """
     n = len(pts)
     if n < 2:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    tree = _bulk(np.arange(n), pts)
+    pts = np.asarray(pts, dtype=float)
     r = np.asarray(radius, dtype=float)
     r = r[:, None] if r.ndim == 1 else r
-    ids, counts = tree.intersection_v(np.ascontiguousarray(pts - r), np.ascontiguousarray(pts + r))
-    a = np.repeat(np.arange(n), counts.astype(np.int64))
-    b = np.asarray(ids, dtype=np.int64)
+    a, b = _query([PackedTree(np.arange(n), pts)], pts, pts - r, pts + r)
     keep = a != b
     pair = np.unique(np.column_stack([np.minimum(a, b), np.maximum(a, b)])[keep], axis=0)
     return pair[:, 0], pair[:, 1]

@@ -13,8 +13,8 @@ PACKAGE = Path(__file__).resolve().parent.parent / "curvimesh"
 LAYERS = {
     "__init__": 0,
     "errors": 0,
+    "kernels": 0,
     "expressions": 1,
-    "kernels": 1,
     "bezier": 1,
     "spatial": 1,
     "mesh": 2,
@@ -48,7 +48,6 @@ LAYERS = {
 #: Each third-party dependency at the edge lives in the named modules only.
 EDGES = {
     "meshio": {"io"},
-    "rtree": {"spatial"},
     "click": {"cli"},
     "matplotlib": {"plot"},
     "yaml": {"metric", "batch"},
