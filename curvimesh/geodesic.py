@@ -16,6 +16,7 @@ Every function works on arrays of rows (one geodesic or one edge a row).
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -353,7 +354,36 @@ def shortest_parabola(
     """
     x0 = np.asarray(x0, dtype=float).reshape(-1, 2)
     x1 = np.asarray(x1, dtype=float).reshape(-1, 2)
-    n = len(x0)
+    nrm = bisector_normal(x0, x1)
+    mid0 = 0.5 * (x0 + x1)
+    grid = np.linspace(-alpha_max, alpha_max, scan)
+    memo = _memo(field, (alpha_max, scan, alpha_tol, segments, order))
+    keys = _pair_keys(x0, x1)
+    alpha, f_alpha, found = memo.find(keys)
+    todo = np.flatnonzero(~found)
+    if todo.size:
+        a, f = _search_alpha(field, x0[todo], x1[todo], grid, alpha_tol, segments, order)
+        alpha[todo], f_alpha[todo] = a, f
+        memo.add(keys[todo], a, f)
+    mid = mid0 + alpha[:, None] * nrm
+    if exact_length:
+        ln = parabola_length(field, x0, x1, mid)
+    else:
+        ln = f_alpha
+    return Parabolas(alpha, mid, ln)
+
+
+def _search_alpha(field, x0, x1, grid, alpha_tol, segments, order):
+    """α ``(n,)`` of the shortest parabolas by :func:`shortest_parabola`'s search, and the
+    fixed rule's length there ``(n,)``."""
+    cm = field.kernel
+    if cm is not None:
+        alpha, f_alpha = np.empty(len(x0)), np.empty(len(x0))
+        t, w = _gauss(segments, order)
+        a, b = _rows(x0, x1)
+        kernels.shortest_parabolas(cm.g, a, b, grid, t, w, alpha_tol, 60, alpha, f_alpha)
+        return alpha, f_alpha
+    n, scan = len(x0), len(grid)
     nrm = bisector_normal(x0, x1)
     mid0 = 0.5 * (x0 + x1)
 
@@ -361,16 +391,6 @@ def shortest_parabola(
         xm = mid0[rows] + alpha[:, None] * nrm[rows]
         return parabola_length_rule(field, x0[rows], x1[rows], xm, segments=segments, order=order)
 
-    grid = np.linspace(-alpha_max, alpha_max, scan)
-    cm = field.kernel
-    if cm is not None:
-        alpha, f_alpha = np.empty(n), np.empty(n)
-        t, w = _gauss(segments, order)
-        a, b = _rows(x0, x1)
-        kernels.shortest_parabolas(cm.g, a, b, grid, t, w, alpha_tol, 60, alpha, f_alpha)
-        mid = mid0 + alpha[:, None] * nrm
-        ln = parabola_length(field, x0, x1, mid) if exact_length else f_alpha
-        return Parabolas(alpha, mid, ln)
     vals = np.empty((n, scan))
     for j, a in enumerate(grid):
         vals[:, j] = length(np.full(n, a))
@@ -380,13 +400,69 @@ def shortest_parabola(
     ia, ic = np.maximum(best - 1, 0), np.minimum(best + 1, scan - 1)
     a, b, c = grid[ia], grid[best], grid[ic]
     fa, fb, fc = vals[rows, ia], vals[rows, best], vals[rows, ic]
-    alpha, f_alpha = _brent_minimise(length, a, b, c, fa, fb, fc, alpha_tol)
-    mid = mid0 + alpha[:, None] * nrm
-    if exact_length:
-        ln = parabola_length(field, x0, x1, mid)
-    else:
-        ln = f_alpha
-    return Parabolas(alpha, mid, ln)
+    return _brent_minimise(length, a, b, c, fa, fb, fc, alpha_tol)
+
+
+class _SearchMemo:
+    """Finished searches of :func:`shortest_parabola` (α and the rule's length) by their
+    exact end points, for one field and one set of search options.
+
+    The search is a pure function of the end points: later stages of a run
+    (re-curving, swaps, shifts, splits) ask again for the parabolas of edges
+    that curving or an earlier swap round already found, and get the same
+    numbers back. At most :data:`MEMO_SIZE` entries (the oldest half is
+    dropped past it).
+    """
+
+    def __init__(self) -> None:
+        self.keys = np.zeros(0, dtype=_PAIR_KEY)
+        self.alpha = np.zeros(0)
+        self.length = np.zeros(0)
+
+    def find(self, keys: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+        """α and lengths ``(k,)`` (NaN where absent) and whether each key is there."""
+        alpha, length = np.full(len(keys), np.nan), np.full(len(keys), np.nan)
+        if len(self.keys) == 0:
+            return alpha, length, np.zeros(len(keys), dtype=bool)
+        pos = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
+        found = self.keys[pos] == keys
+        alpha[found], length[found] = self.alpha[pos[found]], self.length[pos[found]]
+        return alpha, length, found
+
+    def add(self, keys: NDArray, alpha: NDArray, length: NDArray) -> None:
+        """Insert entries (keys not yet present; the first of repeated keys is kept)."""
+        if len(self.keys) + len(keys) > MEMO_SIZE:
+            keep = slice(len(self.keys) // 2, None)  # oldest first: added in order
+            self.keys, self.alpha, self.length = (
+                v[keep] for v in (self.keys, self.alpha, self.length)
+            )
+        k = np.concatenate([self.keys, keys])
+        order = np.argsort(k, kind="stable")
+        k = k[order]
+        first = np.ones(len(k), dtype=bool)
+        first[1:] = k[1:] != k[:-1]
+        sel = order[first]
+        self.keys = k[first]
+        self.alpha = np.concatenate([self.alpha, alpha])[sel]
+        self.length = np.concatenate([self.length, length])[sel]
+
+
+#: Most entries of a :class:`_SearchMemo` (48 bytes each).
+MEMO_SIZE = 1 << 22
+#: The end points (x₀, y₀, x₁, y₁) of a pair as one 32-byte key.
+_PAIR_KEY = np.dtype((np.void, 32))
+_MEMOS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _pair_keys(x0: NDArray, x1: NDArray) -> NDArray:
+    rows = np.ascontiguousarray(np.column_stack([x0, x1]), dtype=np.float64)
+    return rows.view(_PAIR_KEY).ravel()
+
+
+def _memo(field: MetricField, options: tuple) -> _SearchMemo:
+    """The memo of ``field``'s searches with ``options`` (dropped with the field)."""
+    per_field = _MEMOS.setdefault(field, {})
+    return per_field.setdefault(options, _SearchMemo())
 
 
 def _brent_minimise(f, a, b, c, fa, fb, fc, tol: float, max_iter: int = 60):

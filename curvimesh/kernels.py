@@ -839,3 +839,35 @@ def rtree_fill(mins, maxs, boxes, first, count, leaf, ids, roots, pts, offsets, 
             mins[q, 0], mins[q, 1], maxs[q, 0], maxs[q, 1], seg, offsets[q + 1] - offsets[q],
         )  # fmt: skip
         seg[:n].sort()
+
+
+# --------------------------------------------------------------------------- #
+# Metric areas of curved triangles                                             #
+# --------------------------------------------------------------------------- #
+
+
+@_row_kernel
+def metric_areas(fn, nodes, shape, du, dv, w, out):
+    """∫_t sqrt(det g) dx of P2 triangles ``nodes`` ``(m, 6, 2)`` by the rule (ξ_k, w_k),
+    given the shape functions ``shape`` and their derivatives ``du``, ``dv`` ``(k, 6)``
+    at its points: Σ_k w_k sqrt(det g(x(ξ_k))) J(ξ_k), J taken relative to corner 0
+    (as :func:`curvimesh.quality.metric_areas`); NaN where g is undefined."""
+    for i in prange(nodes.shape[0]):
+        x0, y0 = nodes[i, 0, 0], nodes[i, 0, 1]
+        acc = 0.0
+        for k in range(w.shape[0]):
+            px = py = 0.0
+            xu = yu = xv = yv = 0.0
+            for a in range(6):
+                x, y = nodes[i, a, 0], nodes[i, a, 1]
+                px += shape[k, a] * x
+                py += shape[k, a] * y
+                lx, ly = x - x0, y - y0
+                xu += du[k, a] * lx
+                yu += du[k, a] * ly
+                xv += dv[k, a] * lx
+                yv += dv[k, a] * ly
+            g = fn(px, py)
+            dens = math.sqrt(g[0] * g[2] - g[1] * g[1])
+            acc += dens * (xu * yv - xv * yu) * w[k]
+        out[i] = acc

@@ -16,7 +16,8 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import NDArray
 
-from curvimesh.bezier import p2_jacobian, p2_map
+from curvimesh import kernels
+from curvimesh.bezier import p2_jacobian, p2_map, p2_shape, p2_shape_grad
 from curvimesh.geodesic import parabola_length, parabola_length_rule
 from curvimesh.metric import MetricField
 
@@ -50,6 +51,15 @@ def metric_areas(field: MetricField, nodes: NDArray, *, order: int = 4) -> NDArr
     J(ξ) enters with its sign, so an inverted triangle has a smaller area.
     """
     uv, w = triangle_rule(order)
+    cm = field.kernel
+    if cm is not None:
+        grad = p2_shape_grad(uv)
+        out = np.empty(len(nodes))
+        kernels.metric_areas(
+            cm.g, np.ascontiguousarray(nodes, dtype=float), p2_shape(uv),
+            np.ascontiguousarray(grad[:, :, 0]), np.ascontiguousarray(grad[:, :, 1]), w, out,
+        )  # fmt: skip
+        return out
     pts = p2_map(nodes, uv)  # (m, k, 2)
     jac = p2_jacobian(nodes, uv)  # (m, k)
     g = field.tensor(pts.reshape(-1, 2), check=False).reshape(*pts.shape[:2], 2, 2)

@@ -264,3 +264,47 @@ def test_verdicts_stopping_early_match_full_searches(name):
     assert min((got == v).sum() for v in (-1, 0, 1)) > 100  # all three verdicts occur
     one_sided = geo.parabola_verdicts(fast, a, b, short=0.7)
     assert np.array_equal(one_sided, np.where(length < 0.7, -1, 0))
+
+
+@pytest.mark.parametrize("name", ["toy", "three_toys", "front"])
+def test_compiled_metric_areas_match_numpy(name):
+    from curvimesh.quality import metric_areas
+
+    fast, ref = both(load_metric(METRICS / f"{name}.yaml"))
+    rng = np.random.default_rng(41)
+    corners = box_points(fast, 600, 42)
+    step = np.array([[0.02, 0.0], [0.0, 0.02]])
+    tri = np.stack([corners, corners + step[0], corners + step[1]], axis=1)
+    mids = 0.5 * (tri + tri[:, [1, 2, 0]]) + rng.normal(scale=0.002, size=(600, 3, 2))
+    nodes = np.concatenate([tri, mids], axis=1)
+    got, want = metric_areas(fast, nodes), metric_areas(ref, nodes)
+    np.testing.assert_allclose(got, want, rtol=1e-11 if name == "three_toys" else 1e-13)
+
+
+def test_repeated_searches_are_remembered_exactly():
+    fld = load_metric(METRICS / "toy.yaml")
+    a = box_points(fld, 500, 51)
+    b = a + np.random.default_rng(52).normal(scale=0.05, size=a.shape)
+    first = geo.shortest_parabola(fld, a, b, exact_length=False)
+    calls = []
+    real = geo._search_alpha
+
+    def counting(field, x0, *args):
+        calls.append(len(x0))
+        return real(field, x0, *args)
+
+    try:
+        geo._search_alpha = counting
+        # half repeated, half new, in another order: only the new ones are searched
+        mixed_a = np.concatenate([a[250:][::-1], a[:250] + 1e-3])
+        mixed_b = np.concatenate([b[250:][::-1], b[:250]])
+        again = geo.shortest_parabola(fld, mixed_a, mixed_b, exact_length=False)
+    finally:
+        geo._search_alpha = real
+    assert calls == [250]
+    assert np.array_equal(again.alpha[:250], first.alpha[250:][::-1])
+    assert np.array_equal(again.length[:250], first.length[250:][::-1])
+    fresh = geo.shortest_parabola(
+        dataclasses.replace(fld, name="other"), mixed_a, mixed_b, exact_length=False
+    )
+    assert np.array_equal(again.alpha, fresh.alpha)  # what a search from scratch gives
