@@ -410,41 +410,43 @@ class _SearchMemo:
     The search is a pure function of the end points: later stages of a run
     (re-curving, swaps, shifts, splits) ask again for the parabolas of edges
     that curving or an earlier swap round already found, and get the same
-    numbers back. At most :data:`MEMO_SIZE` entries (the oldest half is
-    dropped past it).
+    numbers back. Entries are kept in sorted runs, a logarithmic family
+    (Bentley & Saxe 1980: a new run absorbs the older runs no larger than
+    itself), so that adding k entries costs O(k log n) amortised and a lookup
+    one binary search per run. Past :data:`MEMO_SIZE` entries the oldest run
+    is dropped.
     """
 
     def __init__(self) -> None:
-        self.keys = np.zeros(0, dtype=_PAIR_KEY)
-        self.alpha = np.zeros(0)
-        self.length = np.zeros(0)
+        self.runs: list[tuple[NDArray, NDArray, NDArray]] = []  # (keys, alpha, length)
 
     def find(self, keys: NDArray) -> tuple[NDArray, NDArray, NDArray]:
         """α and lengths ``(k,)`` (NaN where absent) and whether each key is there."""
         alpha, length = np.full(len(keys), np.nan), np.full(len(keys), np.nan)
-        if len(self.keys) == 0:
-            return alpha, length, np.zeros(len(keys), dtype=bool)
-        pos = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
-        found = self.keys[pos] == keys
-        alpha[found], length[found] = self.alpha[pos[found]], self.length[pos[found]]
+        found = np.zeros(len(keys), dtype=bool)
+        for run_keys, run_alpha, run_length in self.runs:
+            rest = np.flatnonzero(~found)
+            if rest.size == 0:
+                break
+            pos = np.minimum(np.searchsorted(run_keys, keys[rest]), len(run_keys) - 1)
+            hit = run_keys[pos] == keys[rest]
+            at, pos = rest[hit], pos[hit]
+            alpha[at], length[at], found[at] = run_alpha[pos], run_length[pos], True
         return alpha, length, found
 
     def add(self, keys: NDArray, alpha: NDArray, length: NDArray) -> None:
-        """Insert entries (keys not yet present; the first of repeated keys is kept)."""
-        if len(self.keys) + len(keys) > MEMO_SIZE:
-            keep = slice(len(self.keys) // 2, None)  # oldest first: added in order
-            self.keys, self.alpha, self.length = (
-                v[keep] for v in (self.keys, self.alpha, self.length)
-            )
-        k = np.concatenate([self.keys, keys])
-        order = np.argsort(k, kind="stable")
-        k = k[order]
+        """Insert entries for keys not yet present (the first of repeated keys is kept)."""
+        run = (keys, alpha, length)
+        while self.runs and len(self.runs[-1][0]) <= len(run[0]):
+            older = self.runs.pop()
+            run = tuple(np.concatenate([a, b]) for a, b in zip(older, run, strict=True))
+        k = run[0]
+        order = np.argsort(k, kind="stable")  # older entries first among equal keys
         first = np.ones(len(k), dtype=bool)
-        first[1:] = k[1:] != k[:-1]
-        sel = order[first]
-        self.keys = k[first]
-        self.alpha = np.concatenate([self.alpha, alpha])[sel]
-        self.length = np.concatenate([self.length, length])[sel]
+        first[1:] = k[order][1:] != k[order][:-1]
+        self.runs.append(tuple(a[order[first]] for a in run))
+        while sum(len(r[0]) for r in self.runs) > MEMO_SIZE and len(self.runs) > 1:
+            self.runs.pop(0)
 
 
 #: Most entries of a :class:`_SearchMemo` (48 bytes each).

@@ -308,3 +308,26 @@ def test_repeated_searches_are_remembered_exactly():
         dataclasses.replace(fld, name="other"), mixed_a, mixed_b, exact_length=False
     )
     assert np.array_equal(again.alpha, fresh.alpha)  # what a search from scratch gives
+
+
+def test_search_memo_runs_answer_as_a_dictionary(monkeypatch):
+    monkeypatch.setattr(geo, "MEMO_SIZE", 3000)
+    memo = geo._SearchMemo()
+    rng = np.random.default_rng(61)
+    truth: dict[bytes, float] = {}
+    for size in rng.integers(1, 400, 40):
+        pts = np.round(rng.uniform(0, 1, (size, 4)), 2)  # repeats across and within batches
+        keys = geo._pair_keys(pts[:, :2], pts[:, 2:])
+        alpha, _, found = memo.find(keys)
+        for k, a, f in zip(keys, alpha, found, strict=True):
+            assert not f or k.tobytes() in truth  # found: stored before (dropped runs forget)
+            if f:
+                assert a == truth[k.tobytes()]
+        new = np.flatnonzero(~found)
+        values = rng.uniform(size=new.size)
+        memo.add(keys[new], values, values)
+        for k, v in zip(keys[new], values, strict=True):
+            truth.setdefault(k.tobytes(), v)  # the first of repeated keys is kept
+        assert sum(len(r[0]) for r in memo.runs) <= 3000 or len(memo.runs) == 1
+        sizes = [len(r[0]) for r in memo.runs]
+        assert sizes == sorted(sizes, reverse=True)  # runs shrink: O(log n) of them
