@@ -657,6 +657,55 @@ def parabola_verdicts(
     return verdict
 
 
+#: Pairs decided at once by the numpy code of :func:`any_closer` and
+#: :func:`curvimesh.sampling.too_close`: their temporaries (probes, quadrature points
+#: and the search per pair) stay some tens of MB whatever the number of pairs
+#: (millions in the gap filling of a 10⁵-vertex mesh).
+PAIR_BLOCK = 32_768
+
+
+def any_closer(
+    field: MetricField,
+    a: NDArray,
+    b: NDArray,
+    offsets: NDArray,
+    hits: NDArray,
+    short: float,
+    *,
+    straight_order: int = 5,
+) -> NDArray[np.bool_]:
+    """Whether each point ``a[i]`` ``(k, 2)`` has a shortest parabola shorter than
+    ``short`` to one of ``b[hits[offsets[i]:offsets[i + 1]]]`` (``b`` ``(n, 2)``,
+    ``offsets`` ``(k + 1,)``), ``(k,)``.
+
+    The verdicts of :func:`parabola_verdicts` (``short`` only), pair by pair;
+    where the field is compiled, :func:`curvimesh.kernels.close_candidates`
+    tries each point's pairs nearest first and stops at the first close one.
+    """
+    cm = field.kernel
+    q = np.repeat(np.arange(len(a)), np.diff(offsets))
+    if cm is None:
+        close = np.zeros(len(a), dtype=bool)
+        for start in range(0, len(q), PAIR_BLOCK):  # bounded temporaries
+            rows = slice(start, start + PAIR_BLOCK)
+            v = parabola_verdicts(
+                field, a[q[rows]], b[hits[rows]], short=short, straight_order=straight_order
+            )
+            close[q[rows][v < 0]] = True
+        return close
+    ga = field.tensor(a, check=False)
+    out = np.zeros(len(a), dtype=np.bool_)
+    ts, ws = _gauss(2, straight_order)
+    t, w = _gauss(2, 5)
+    kernels.close_candidates(
+        cm.g, *_rows(a), np.ascontiguousarray(ga[:, [0, 0, 1], [0, 1, 1]]), *_rows(b),
+        np.ascontiguousarray(offsets, dtype=np.int64), np.ascontiguousarray(hits, dtype=np.int64),
+        float(short), LOWER_BOUND_MARGIN, _PROBES, ts, ws, np.linspace(-0.5, 0.5, BOUNDED_SCAN),
+        t, w, BOUNDED_TOL, out,
+    )  # fmt: skip
+    return out
+
+
 def _bounds(field, a, b, short, long, straight_order):
     """The bound stage of :func:`bounded_lengths`: lengths (bounds) ``(p,)``, chord
     midpoints ``(p, 2)`` and the rows whose parabola must be searched."""

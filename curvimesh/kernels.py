@@ -362,13 +362,12 @@ def parabola_lengths(fn, x0, x1, xm, t, w, out):
 
 
 @njit(**_JIT)
-def _offset_length(fn, x0, x1, i, alpha, t, w):
-    # middle node (x0 + x1)/2 + α (Δy, −Δx), geodesic.parabola_midnode
-    dx = x1[i, 0] - x0[i, 0]
-    dy = x1[i, 1] - x0[i, 1]
-    mx = 0.5 * (x0[i, 0] + x1[i, 0]) + alpha * dy
-    my = 0.5 * (x0[i, 1] + x1[i, 1]) - alpha * dx
-    return _parabola_length(fn, x0[i, 0], x0[i, 1], x1[i, 0], x1[i, 1], mx, my, t, w)
+def _offset_length(fn, ax, ay, bx, by, alpha, t, w):
+    """Length of the parabola from a to b through (a + b)/2 + α (b − a)×e₃
+    (:func:`curvimesh.geodesic.parabola_midnode`)."""
+    mx = 0.5 * (ax + bx) + alpha * (by - ay)
+    my = 0.5 * (ay + by) - alpha * (bx - ax)
+    return _parabola_length(fn, ax, ay, bx, by, mx, my, t, w)
 
 
 @njit(**_JIT)
@@ -381,7 +380,7 @@ def _convex_floor(a, b, c, fa, fb, fc):
 
 
 @njit(**_JIT)
-def _search(fn, x0, x1, i, grid, t, w, tol, max_iter, decide, short, long):
+def _search(fn, ax, ay, bx, by, grid, t, w, tol, max_iter, decide, short, long):
     """The shortest-parabola search of one row; returns (α, length, verdict).
 
     A scan of α over ``grid``, then safeguarded parabolic interpolation
@@ -401,7 +400,7 @@ def _search(fn, x0, x1, i, grid, t, w, tol, max_iter, decide, short, long):
     vals = np.empty(scan)
     best = 0
     for j in range(scan):
-        vals[j] = _offset_length(fn, x0, x1, i, grid[j], t, w)
+        vals[j] = _offset_length(fn, ax, ay, bx, by, grid[j], t, w)
         if vals[j] < vals[best]:  # the first smallest, as np.argmin
             best = j
     ia = max(best - 1, 0)
@@ -431,7 +430,7 @@ def _search(fn, x0, x1, i, grid, t, w, tol, max_iter, decide, short, long):
                 u = b + cgold * (c - b)
             else:
                 u = b - cgold * (b - a)
-        fu = _offset_length(fn, x0, x1, i, u, t, w)
+        fu = _offset_length(fn, ax, ay, bx, by, u, t, w)
         if not math.isfinite(fu):
             fu = math.inf
         if fu < fb:
@@ -455,8 +454,9 @@ def shortest_parabolas(fn, x0, x1, grid, t, w, tol, max_iter, alpha, length):
     (:func:`_search`): writes α and the rule's length at it."""
     for i in prange(x0.shape[0]):
         alpha[i], length[i], _ = _search(
-            fn, x0, x1, i, grid, t, w, tol, max_iter, False, -math.inf, math.inf
-        )
+            fn, x0[i, 0], x0[i, 1], x1[i, 0], x1[i, 1], grid, t, w, tol, max_iter, False,
+            -math.inf, math.inf,
+        )  # fmt: skip
 
 
 @_row_kernel
@@ -464,32 +464,90 @@ def classify_parabolas(fn, x0, x1, grid, t, w, tol, max_iter, short, long, verdi
     """Whether the shortest parabola of each row is below ``short`` (−1), above
     ``long[i]`` (+1) or neither (0), by :func:`_search` stopping at the verdict."""
     for i in prange(x0.shape[0]):
-        _, _, verdict[i] = _search(fn, x0, x1, i, grid, t, w, tol, max_iter, True, short, long[i])
+        _, _, verdict[i] = _search(
+            fn, x0[i, 0], x0[i, 1], x1[i, 0], x1[i, 1], grid, t, w, tol, max_iter, True,
+            short, long[i],
+        )  # fmt: skip
+
+
+@njit(**_JIT)
+def _chord_bound(fn, ax, ay, bx, by, probes):
+    """|d| / max over the probes (t, s) of sqrt(νᵀ g⁻¹ ν) at a + t d + s d×e₃, d = b − a,
+    ν = d / |d| (:func:`curvimesh.geodesic.chord_lower_bound`); NaN if g is undefined
+    at a probe."""
+    dx = bx - ax
+    dy = by - ay
+    chord = math.hypot(dx, dy)
+    nx = dx / chord
+    ny = dy / chord
+    worst = -math.inf
+    for k in range(probes.shape[0]):
+        tk = probes[k, 0]
+        sk = probes[k, 1]
+        g = fn(ax + tk * dx + sk * dy, ay + tk * dy - sk * dx)
+        det = g[0] * g[2] - g[1] ** 2
+        sup = (g[2] * nx**2 - 2 * g[1] * nx * ny + g[0] * ny**2) / det
+        if math.isnan(sup):
+            return math.nan
+        if sup > worst:
+            worst = sup
+    return chord / math.sqrt(worst)
 
 
 @_row_kernel
 def chord_bounds(fn, a, b, probes, out):
-    """:func:`curvimesh.geodesic.chord_lower_bound` row by row: |d| / max over the
-    probes (t, s) of sqrt(νᵀ g⁻¹ ν) at a + t d + s d×e₃."""
+    """:func:`_chord_bound` row by row."""
     for i in prange(a.shape[0]):
-        dx = b[i, 0] - a[i, 0]
-        dy = b[i, 1] - a[i, 1]
-        chord = math.hypot(dx, dy)
-        nx = dx / chord
-        ny = dy / chord
-        worst = -math.inf
-        nan = False
-        for k in range(probes.shape[0]):
-            tk = probes[k, 0]
-            sk = probes[k, 1]
-            g = fn(a[i, 0] + tk * dx + sk * dy, a[i, 1] + tk * dy - sk * dx)
-            det = g[0] * g[2] - g[1] ** 2
-            sup = (g[2] * nx**2 - 2 * g[1] * nx * ny + g[0] * ny**2) / det
-            if math.isnan(sup):
-                nan = True
-            elif sup > worst:
-                worst = sup
-        out[i] = math.nan if nan else chord / math.sqrt(worst)
+        out[i] = _chord_bound(fn, a[i, 0], a[i, 1], b[i, 0], b[i, 1], probes)
+
+
+@njit(**_JIT)
+def _is_close(fn, ax, ay, bx, by, short, margin, probes, ts, ws, grid, t, w, tol):
+    """Whether the shortest parabola from a to b is below ``short``, decided as
+    :func:`curvimesh.geodesic.parabola_verdicts` with only ``short``: far if the
+    chord bound is at least ``margin`` × short, close if the straight segment
+    (rule ``ts``, ``ws``) is below it, else by the search stopping at its verdict."""
+    lower = _chord_bound(fn, ax, ay, bx, by, probes)
+    if lower >= margin * short:
+        return False
+    upper = _parabola_length(fn, ax, ay, bx, by, 0.5 * (ax + bx), 0.5 * (ay + by), ts, ws)
+    if upper < short:  # (an undefined length is inf, never NaN)
+        return True
+    return _search(fn, ax, ay, bx, by, grid, t, w, tol, 60, True, short, math.inf)[2] < 0
+
+
+@_row_kernel
+def close_candidates(
+    fn, cand, g_cand, pts, offsets, hits, short, margin, probes, ts, ws, grid, t, w, tol, out
+):
+    """Whether each candidate ``cand[i]`` is closer than ``short`` to any of its
+    neighbours ``pts[hits[offsets[i]:offsets[i+1]]]`` (shortest parabola from the
+    candidate, decided by :func:`_is_close`).
+
+    The neighbours are tried nearest first, by the length of the chord in the
+    candidate's metric ``g_cand[i]`` (g11, g12, g22), and the first close one
+    decides: the verdict of every pair being fixed, the order changes only
+    how many are tried (a rejected candidate usually has a close neighbour
+    among its nearest).
+    """
+    for i in prange(cand.shape[0]):
+        lo, hi = offsets[i], offsets[i + 1]
+        cx, cy = cand[i, 0], cand[i, 1]
+        g11, g12, g22 = g_cand[i, 0], g_cand[i, 1], g_cand[i, 2]
+        key = np.empty(hi - lo)
+        for k in range(lo, hi):
+            dx = pts[hits[k], 0] - cx
+            dy = pts[hits[k], 1] - cy
+            key[k - lo] = g11 * dx * dx + 2.0 * g12 * dx * dy + g22 * dy * dy
+        close = False
+        for k in np.argsort(key, kind="mergesort"):
+            p = hits[lo + k]
+            if _is_close(
+                fn, cx, cy, pts[p, 0], pts[p, 1], short, margin, probes, ts, ws, grid, t, w, tol
+            ):
+                close = True
+                break
+        out[i] = close
 
 
 # --------------------------------------------------------------------------- #

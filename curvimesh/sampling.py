@@ -30,6 +30,8 @@ from numpy.typing import NDArray
 
 from curvimesh.boundary import BoundaryMesh
 from curvimesh.geodesic import (
+    PAIR_BLOCK,
+    any_closer,
     parabola_length_rule,
     parabola_verdicts,
     shoot,
@@ -94,12 +96,6 @@ def search_halfwidths(field: MetricField, pts: NDArray, radius: float) -> NDArra
         hw = radius / np.sqrt(w)
     hw[~np.isfinite(hw)] = 0.0
     return np.column_stack([hw, hw])
-
-
-#: Pairs tested at once by :func:`too_close`: its temporaries (five probes, eight
-#: quadrature points and the parabola search per pair) stay some tens of MB
-#: whatever the number of pairs (millions in the gap filling of a 10⁵-vertex mesh).
-PAIR_BLOCK = 32_768
 
 
 def too_close(field: MetricField, a: NDArray, b: NDArray, min_dist: float) -> NDArray:
@@ -214,9 +210,8 @@ def accept_candidates(
     radius = search_halfwidths(field, cand, opt.search * opt.min_dist)
     # against the points kept so far
     q, hit = index.query(cand - radius, cand + radius)
-    close = too_close(field, cand[q], index.points[hit], opt.min_dist)
-    bad = np.zeros(len(cand), dtype=bool)
-    bad[q[close]] = True
+    offsets = np.searchsorted(q, np.arange(len(cand) + 1))  # q is sorted
+    bad = any_closer(field, cand, index.points, offsets, hit, opt.min_dist, straight_order=4)
     cand, radius = cand[~bad], radius[~bad]
     # among the candidates themselves, greedily in order
     i, j = pairs_within_boxes(cand, radius)

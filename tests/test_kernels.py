@@ -331,3 +331,31 @@ def test_search_memo_runs_answer_as_a_dictionary(monkeypatch):
         assert sum(len(r[0]) for r in memo.runs) <= 3000 or len(memo.runs) == 1
         sizes = [len(r[0]) for r in memo.runs]
         assert sizes == sorted(sizes, reverse=True)  # runs shrink: O(log n) of them
+
+
+@pytest.mark.parametrize("name", ["toy", "front"])
+def test_any_closer_nearest_first_gives_the_pairwise_verdicts(name):
+    fast, ref = both(load_metric(METRICS / f"{name}.yaml"))
+    pts = box_points(fast, 700, 71)
+    cand = box_points(fast, 1500, 72)
+    rng = np.random.default_rng(73)
+    counts = rng.integers(0, 40, len(cand))
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    # neighbours: mostly the nearest points (as the R-tree gives), some far ones
+    d = np.hypot(*(cand[:, None, :] - pts[None, :, :]).transpose(2, 0, 1))
+    near = np.argsort(d, axis=1)
+    hits = np.concatenate(
+        [
+            np.concatenate([near[i, :c][::-1], rng.integers(0, len(pts), c // 4)])[:c]
+            for i, c in enumerate(counts)
+        ]
+    )
+    got = geo.any_closer(fast, cand, pts, offsets, hits, 0.7, straight_order=4)
+    want = geo.any_closer(ref, cand, pts, offsets, hits, 0.7, straight_order=4)
+    q = np.repeat(np.arange(len(cand)), counts)
+    pairwise = geo.parabola_verdicts(fast, cand[q], pts[hits], short=0.7, straight_order=4) < 0
+    from_pairs = np.zeros(len(cand), dtype=bool)
+    from_pairs[q[pairwise]] = True
+    assert np.array_equal(got, want) and np.array_equal(got, from_pairs)
+    assert 50 < got.sum() < len(cand) - 50  # both answers occur
+    assert not got[counts == 0].any()
