@@ -342,6 +342,7 @@ def shortest_parabola(
     segments: int = 2,
     order: int = 5,
     exact_length: bool = True,
+    remember: bool = True,
 ) -> Parabolas:
     """The shortest parabola between each pair of points (paper equation (3)).
 
@@ -351,20 +352,27 @@ def shortest_parabola(
     steps; the paper used golden section alone) in the bracket around the
     best scanned value, down to ``alpha_tol``. The search uses a fixed composite Gauss rule; the
     returned length is recomputed to 1e-5 relative when ``exact_length``.
+
+    With ``remember`` the searches are looked up in, and added to, the field's
+    memo (:class:`_SearchMemo`); callers whose end points are new every time
+    (points that move, shots) pass False.
     """
     x0 = np.asarray(x0, dtype=float).reshape(-1, 2)
     x1 = np.asarray(x1, dtype=float).reshape(-1, 2)
     nrm = bisector_normal(x0, x1)
     mid0 = 0.5 * (x0 + x1)
     grid = np.linspace(-alpha_max, alpha_max, scan)
-    memo = _memo(field, (alpha_max, scan, alpha_tol, segments, order))
-    keys = _pair_keys(x0, x1)
-    alpha, f_alpha, found = memo.find(keys)
-    todo = np.flatnonzero(~found)
-    if todo.size:
-        a, f = _search_alpha(field, x0[todo], x1[todo], grid, alpha_tol, segments, order)
-        alpha[todo], f_alpha[todo] = a, f
-        memo.add(keys[todo], a, f)
+    if not remember:
+        alpha, f_alpha = _search_alpha(field, x0, x1, grid, alpha_tol, segments, order)
+    else:
+        memo = _memo(field, (alpha_max, scan, alpha_tol, segments, order))
+        keys = _pair_keys(x0, x1)
+        alpha, f_alpha, found = memo.find(keys)
+        todo = np.flatnonzero(~found)
+        if todo.size:
+            a, f = _search_alpha(field, x0[todo], x1[todo], grid, alpha_tol, segments, order)
+            alpha[todo], f_alpha[todo] = a, f
+            memo.add(keys[todo], a, f)
     mid = mid0 + alpha[:, None] * nrm
     if exact_length:
         ln = parabola_length(field, x0, x1, mid)
@@ -597,7 +605,13 @@ def bounded_lengths(
     length, mid, s = _bounds(field, a, b, short, long, straight_order)
     if s.size:
         par = shortest_parabola(
-            field, a[s], b[s], scan=BOUNDED_SCAN, alpha_tol=BOUNDED_TOL, exact_length=False
+            field,
+            a[s],
+            b[s],
+            scan=BOUNDED_SCAN,
+            alpha_tol=BOUNDED_TOL,
+            exact_length=False,
+            remember=False,
         )
         length[s], mid[s] = par.length, par.mid
     return length, mid
@@ -634,7 +648,13 @@ def parabola_verdicts(
     cm = field.kernel
     if cm is None:
         par = shortest_parabola(
-            field, a[s], b[s], scan=BOUNDED_SCAN, alpha_tol=BOUNDED_TOL, exact_length=False
+            field,
+            a[s],
+            b[s],
+            scan=BOUNDED_SCAN,
+            alpha_tol=BOUNDED_TOL,
+            exact_length=False,
+            remember=False,
         )
         verdict[s] = np.where(par.length < lo, -1, np.where(par.length > hi[s], 1, 0))
         return verdict

@@ -178,7 +178,9 @@ def shortened_ends(
     positions and unit-speed velocities at t = 0 and t = ℓ — no second shot.
     """
     x1, v1 = shot.end[ok], shot.velocity[ok]
-    par = shortest_parabola(field, starts, x1, scan=5, alpha_tol=2e-3, exact_length=False)
+    par = shortest_parabola(
+        field, starts, x1, scan=5, alpha_tol=2e-3, exact_length=False, remember=False
+    )
     with np.errstate(invalid="ignore", divide="ignore"):
         s = np.clip(spacing / par.length, 0.0, 1.0)  # fraction of the geodesic kept
     s[~np.isfinite(s)] = 1.0

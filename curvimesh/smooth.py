@@ -46,6 +46,7 @@ def edge_parabola_lengths(field: MetricField, points: NDArray, edges: NDArray) -
         scan=5,
         alpha_tol=2e-3,
         exact_length=False,
+        remember=False,  # the vertices move at every sweep
     ).length
 
 
