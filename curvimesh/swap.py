@@ -210,15 +210,20 @@ def swap(
     optimal = EdgeStore(n)  # optimal nodes of candidate new edges
     rejected = np.zeros(0, dtype=np.dtype((np.void, 32)))
     swaps = rounds = 0
+    q = flipped = None
     while rounds < max_rounds:
         cur = Mesh(pts, tris, p1.box)
         edges, tri_edges = cur.edges, cur.tri_edges
         pos, found = store.find(store.key(edges[:, 0], edges[:, 1]))
         assert found.all()
         emid, elen = store.mid[pos], store.length[pos]
-        q = quality_from(
-            metric_areas(field, _nodes(pts, tris, emid[tri_edges]), order=area_order),
-            elen[tri_edges],
+        # qualities: all at the first round, then only of the triangles just flipped
+        # (a triangle's quality depends on its own nodes and edge lengths alone)
+        redo = np.arange(len(tris)) if q is None else flipped
+        q = np.empty(len(tris)) if q is None else q
+        q[redo] = quality_from(
+            metric_areas(field, _nodes(pts, tris[redo], emid[tri_edges[redo]]), order=area_order),
+            elen[tri_edges[redo]],
         )
         _, t1, t2, a, b, c, d = flip_candidates(cur)
         qk = _row_keys(np.column_stack([a, b, c, d]))
@@ -307,6 +312,7 @@ def swap(
         # greedy non-conflicting selection by decreasing gain (ties: candidate order)
         ch = good[independent_flips(t1[good], t2[good], gain[good], len(tris))]
         tris = apply_flips(tris, ch, t1, t2, a, b, c, d)
+        flipped = np.concatenate([t1[ch], t2[ch]])
         store.add(store.key(c[ch], d[ch]), new_mid[ch], new_len[ch])
         swaps += len(ch)
         rounds += 1
