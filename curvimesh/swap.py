@@ -48,6 +48,7 @@ nothing improves (or after ``max_rounds``, a guard against cycles).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,7 +56,7 @@ from numpy.typing import NDArray
 
 from curvimesh.bezier import valid_exact
 from curvimesh.curve import assemble_p2
-from curvimesh.geodesic import shortest_parabola
+from curvimesh.geodesic import chord_lower_bound, shortest_parabola
 from curvimesh.mesh import Mesh, apply_flips, flip_candidates, independent_flips, p1_of
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths_fast, metric_areas, quality_from
@@ -166,6 +167,32 @@ def length_rule_gain(
     return gain
 
 
+#: Margins of :func:`quality_bound`: the quadrature's metric areas are not exactly
+#: additive, the new edge's Gauss-rule length may fall below its chord bound (itself
+#: sampled at probes), by far less than these.
+AREA_MARGIN, LENGTH_MARGIN = 1.05, 1.1
+
+
+def quality_bound(area: NDArray, outer: NDArray, lower: NDArray) -> NDArray:
+    """An upper bound ``(k,)`` of the worse quality (4) of the two triangles a swap makes.
+
+    The two new triangles cover the quad of the two old ones, so their metric
+    areas add up to the old ones' ``area``; ``outer`` is the sum of the squared
+    lengths of the quad's four sides and ``lower`` a lower bound of the new
+    edge's length (:func:`curvimesh.geodesic.chord_lower_bound`). By the mediant
+    inequality, min(A₁/D₁, A₂/D₂) ≤ (A₁ + A₂)/(D₁ + D₂), with Dᵢ the sums of
+    squared lengths, D₁ + D₂ = outer + 2 L_cd²:
+
+        min(q₁', q₂') ≤ 4√3 · AREA_MARGIN · area / (outer + 2 (lower / LENGTH_MARGIN)²).
+
+    NaN bounds (a metric undefined on the way) are +inf: they decide nothing.
+    """
+    with np.errstate(invalid="ignore", divide="ignore"):
+        low = lower / LENGTH_MARGIN
+        bound = 4.0 * math.sqrt(3.0) * AREA_MARGIN * area / (outer + 2.0 * low * low)
+    return np.where(np.isnan(bound), np.inf, bound)
+
+
 def swap(
     field: MetricField,
     mesh: Mesh,
@@ -210,7 +237,7 @@ def swap(
     optimal = EdgeStore(n)  # optimal nodes of candidate new edges
     rejected = np.zeros(0, dtype=np.dtype((np.void, 32)))
     swaps = rounds = 0
-    q = flipped = None
+    q = area = flipped = None
     while rounds < max_rounds:
         cur = Mesh(pts, tris, p1.box)
         edges, tri_edges = cur.edges, cur.tri_edges
@@ -220,15 +247,32 @@ def swap(
         # qualities: all at the first round, then only of the triangles just flipped
         # (a triangle's quality depends on its own nodes and edge lengths alone)
         redo = np.arange(len(tris)) if q is None else flipped
-        q = np.empty(len(tris)) if q is None else q
-        q[redo] = quality_from(
-            metric_areas(field, _nodes(pts, tris[redo], emid[tri_edges[redo]]), order=area_order),
-            elen[tri_edges[redo]],
+        if q is None:
+            q, area = np.empty(len(tris)), np.empty(len(tris))
+        area[redo] = metric_areas(
+            field, _nodes(pts, tris[redo], emid[tri_edges[redo]]), order=area_order
         )
+        q[redo] = quality_from(area[redo], elen[tri_edges[redo]])
         _, t1, t2, a, b, c, d = flip_candidates(cur)
         qk = _row_keys(np.column_stack([a, b, c, d]))
         fresh = ~np.isin(qk, rejected)
         a, b, c, d, t1, t2, qk = (v[fresh] for v in (a, b, c, d, t1, t2, qk))
+        if len(a) == 0:
+            break
+        # candidates no new edge could make worth it, before searching their parabolas
+        outer = sum(
+            store.length[store.find(store.key(u, v))[0]] ** 2
+            for u, v in ((a, d), (c, a), (d, b), (b, c))
+        )
+        bound = quality_bound(area[t1] + area[t2], outer, chord_lower_bound(field, pts[c], pts[d]))
+        q_old = np.minimum(q[t1], q[t2])
+        if length_rule:
+            floor = max(min_quality, float(q.min()))
+            hopeless = np.minimum(bound, floor) < np.minimum(q_old, floor)
+        else:
+            hopeless = bound <= q_old + min_gain
+        rejected = np.union1d(rejected, qk[hopeless])
+        a, b, c, d, t1, t2, qk = (v[~hopeless] for v in (a, b, c, d, t1, t2, qk))
         if len(a) == 0:
             break
         # the new edge's optimal node (computed once per pair, kept in the store)

@@ -94,3 +94,69 @@ def test_no_swap_makes_an_edge_shorter_than_07():
     assert swap(fld, mesh).swaps == 0
     assert swap(fld, mesh, length_rule=True).swaps == 0
     assert swap(fld, mesh, min_length=0.6 - 1e-9).swaps == 1
+
+
+@pytest.mark.parametrize("name", ["toy", "front", "constant_aniso"])
+def test_quality_bound_holds_for_every_possible_swap(name):
+    """The bound that spares hopeless candidates their parabola search is above the
+    worse quality of the two new triangles, with the new edge straight or on its
+    shortest parabola, for every interior edge of an adapted mesh."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from curvimesh import adapt as pipeline
+    from curvimesh.geodesic import chord_lower_bound, shortest_parabola
+    from curvimesh.mesh import flip_candidates, p1_of
+    from curvimesh.metric import load_metric
+    from curvimesh.quality import edge_lengths_fast
+    from curvimesh.swap import quality_bound
+
+    fld = load_metric(Path(__file__).resolve().parent.parent / "metrics" / f"{name}.yaml")
+    opt = pipeline.AdaptOptions()
+    p2 = pipeline.curve(fld, pipeline.triangulate(pipeline.sample(fld, opt), fld, opt), opt)
+    p1 = p1_of(p2)
+    pts = np.asarray(p1.points)
+    renumber = np.full(len(p2.points), -1)
+    renumber[p2.vertex_ids] = np.arange(len(p2.vertex_ids))
+    edges = renumber[p2.edges]
+    mids = np.asarray(p2.points)[p2.edge_mid]
+    node = {(int(min(i, j)), int(max(i, j))): k for k, (i, j) in enumerate(edges)}
+    _, _, _, a, b, c, d = flip_candidates(p1)
+
+    def mid_of(u, v):
+        return mids[[node[(min(x, y), max(x, y))] for x, y in zip(u, v, strict=True)]]
+
+    def length_of(u, v):
+        return edge_lengths_fast(fld, pts[u], pts[v], mid_of(u, v))
+
+    def nodes(corner, edge_mids):
+        return np.concatenate([pts[np.column_stack(corner)], np.stack(edge_mids, axis=1)], axis=1)
+
+    old1 = nodes([a, b, c], [mid_of(a, b), mid_of(b, c), mid_of(c, a)])
+    old2 = nodes([b, a, d], [mid_of(b, a), mid_of(a, d), mid_of(d, b)])
+    area = metric_areas(fld, old1) + metric_areas(fld, old2)
+    l_ad, l_ca, l_db, l_bc = (length_of(u, v) for u, v in ((a, d), (c, a), (d, b), (b, c)))
+    bound = quality_bound(
+        area, l_ad**2 + l_ca**2 + l_db**2 + l_bc**2, chord_lower_bound(fld, pts[c], pts[d])
+    )
+    straight = 0.5 * (pts[c] + pts[d])
+    for m_cd in (straight, shortest_parabola(fld, pts[c], pts[d], exact_length=False).mid):
+        l_cd = edge_lengths_fast(fld, pts[c], pts[d], m_cd)
+        q1 = quality_from(
+            metric_areas(fld, nodes([a, d, c], [mid_of(a, d), m_cd, mid_of(c, a)])),
+            np.column_stack([l_ad, l_cd, l_ca]),
+        )
+        q2 = quality_from(
+            metric_areas(fld, nodes([d, b, c], [mid_of(d, b), mid_of(b, c), m_cd])),
+            np.column_stack([l_db, l_bc, l_cd]),
+        )
+        assert np.all(np.minimum(q1, q2) <= bound)
+    # and it spares most searches: a good mesh's swaps are mostly hopeless
+    q_old = np.minimum(
+        quality_from(
+            metric_areas(fld, old1), np.column_stack([length_of(a, b), length_of(b, c), l_ca])
+        ),
+        quality_from(metric_areas(fld, old2), np.column_stack([length_of(b, a), l_ad, l_db])),
+    )
+    assert np.mean(bound <= q_old) > 0.2
