@@ -604,17 +604,21 @@ def bounded_lengths(
     """
     length, mid, s = _bounds(field, a, b, short, long, straight_order)
     if s.size:
-        par = shortest_parabola(
-            field,
-            a[s],
-            b[s],
-            scan=BOUNDED_SCAN,
-            alpha_tol=BOUNDED_TOL,
-            exact_length=False,
-            remember=False,
-        )
+        par = _bounded_search(field, a[s], b[s])
         length[s], mid[s] = par.length, par.mid
     return length, mid
+
+
+def _bounded_search(field: MetricField, a: NDArray, b: NDArray) -> Parabolas:
+    """The search of :func:`bounded_lengths` (not remembered: its pairs seldom repeat)."""
+    return shortest_parabola(
+        field, a, b, scan=BOUNDED_SCAN, alpha_tol=BOUNDED_TOL, exact_length=False, remember=False
+    )
+
+
+def _verdicts(length: NDArray, short: float, long: NDArray) -> NDArray[np.int8]:
+    """−1 where ``length`` is below ``short``, +1 where above ``long``, 0 elsewhere."""
+    return np.where(length < short, -1, np.where(length > long, 1, 0)).astype(np.int8)
 
 
 #: The search of :func:`bounded_lengths` and :func:`parabola_verdicts`: scan, α tolerance.
@@ -642,21 +646,12 @@ def parabola_verdicts(
     lo = -np.inf if short is None else short
     hi = np.broadcast_to(np.inf if long is None else np.asarray(long, dtype=float), (len(a),))
     length, _, s = _bounds(field, a, b, short, long, straight_order)
-    verdict = np.where(length < lo, -1, np.where(length > hi, 1, 0)).astype(np.int8)
+    verdict = _verdicts(length, lo, hi)
     if s.size == 0:
         return verdict
     cm = field.kernel
     if cm is None:
-        par = shortest_parabola(
-            field,
-            a[s],
-            b[s],
-            scan=BOUNDED_SCAN,
-            alpha_tol=BOUNDED_TOL,
-            exact_length=False,
-            remember=False,
-        )
-        verdict[s] = np.where(par.length < lo, -1, np.where(par.length > hi[s], 1, 0))
+        verdict[s] = _verdicts(_bounded_search(field, a[s], b[s]).length, lo, hi[s])
         return verdict
     grid = np.linspace(-0.5, 0.5, BOUNDED_SCAN)
     t, w = _gauss(2, 5)

@@ -37,6 +37,13 @@ def _str_order(centre: NDArray, capacity: int) -> NDArray:
     return np.lexsort((centre[:, 1], slice_of))
 
 
+def _run_boxes(boxes: NDArray, starts: NDArray) -> NDArray:
+    """Bounding boxes ``(r, 4)`` of the runs of ``boxes`` ``(k, 4)`` beginning at ``starts``."""
+    lo = [np.minimum.reduceat(boxes[:, i], starts) for i in (0, 1)]
+    hi = [np.maximum.reduceat(boxes[:, i], starts) for i in (2, 3)]
+    return np.column_stack([*lo, *hi])
+
+
 class PackedTree:
     """One static R-tree over points ``(n, 2)`` with ids ``(n,)``, packed by STR.
 
@@ -50,14 +57,7 @@ class PackedTree:
         self.ids = np.ascontiguousarray(ids[order], dtype=np.int64)
         p = pts[order]
         starts = np.arange(0, len(p), capacity)
-        boxes = np.column_stack(
-            [
-                np.minimum.reduceat(p[:, 0], starts),
-                np.minimum.reduceat(p[:, 1], starts),
-                np.maximum.reduceat(p[:, 0], starts),
-                np.maximum.reduceat(p[:, 1], starts),
-            ]
-        )
+        boxes = _run_boxes(np.column_stack([p, p]), starts)
         levels = [(boxes, starts, np.diff(np.append(starts, len(p))))]
         while len(levels[-1][0]) > 1:
             child, offset = levels[-1][0], sum(len(lv[0]) for lv in levels[:-1])
@@ -66,14 +66,7 @@ class PackedTree:
             levels[-1] = tuple(a[order] for a in levels[-1])
             child = levels[-1][0]
             starts = np.arange(0, len(child), capacity)
-            boxes = np.column_stack(
-                [
-                    np.minimum.reduceat(child[:, 0], starts),
-                    np.minimum.reduceat(child[:, 1], starts),
-                    np.maximum.reduceat(child[:, 2], starts),
-                    np.maximum.reduceat(child[:, 3], starts),
-                ]
-            )
+            boxes = _run_boxes(child, starts)
             levels.append((boxes, offset + starts, np.diff(np.append(starts, len(child)))))
         self.boxes = np.ascontiguousarray(np.concatenate([lv[0] for lv in levels]))
         self.first = np.concatenate([lv[1] for lv in levels]).astype(np.int64)
