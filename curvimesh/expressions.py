@@ -55,12 +55,13 @@ import math
 import operator
 import threading
 import warnings
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import NamedTuple
 
 import sympy
+from sympy.printing.pycode import PythonCodePrinter
 
 from curvimesh.errors import ExpressionError
 
@@ -79,8 +80,11 @@ __all__ = [
     "RESERVED",
     "TIME_LIMIT",
     "Builtin",
+    "ScalarPrinter",
     "expression_symbols",
     "parse_expression",
+    "scalar_function",
+    "smooth_minmax",
 ]
 
 MAX_LENGTH = 2000
@@ -804,3 +808,80 @@ class _Parser:
                 f"too much to differentiate (more than {MAX_DIFF_WORK} nodes in all)", node
             )
         return self.finish(sympy.diff(operand.expr, variable), None, node)
+
+
+# -- code for other evaluators -----------------------------------------------------
+
+
+def smooth_minmax(expr: sympy.Expr) -> sympy.Expr:
+    """Min/Max rewritten as (a + b ∓ |a − b|)/2, folded left over their arguments.
+
+    min(a, b) = (a + b − |a − b|)/2 and max(a, b) = (a + b + |a − b|)/2 exactly;
+    in this form sympy differentiates plainly (d|u| = sign(u) du, where dMax
+    gives a Heaviside) and lambdified numpy code broadcasts.
+
+    >>> x, y = sympy.symbols("x y", real=True)
+    >>> smooth_minmax(sympy.Max(x, y))
+    x/2 + y/2 + Abs(x - y)/2
+    """
+
+    def fold(args: tuple, sign: int) -> sympy.Expr:
+        acc = args[0]
+        for other in args[1:]:
+            acc = (acc + other + sign * sympy.Abs(acc - other)) / 2
+        return acc
+
+    return expr.replace(sympy.Min, lambda *a: fold(a, -1)).replace(sympy.Max, lambda *a: fold(a, 1))
+
+
+class ScalarPrinter(PythonCodePrinter):
+    """Python code of one point for :func:`curvimesh.kernels.compile_metric`.
+
+    Bare names of ``math`` functions, ``abs`` and the kernels' ``sign``, and
+    every float written exactly (its shortest repr), so that the compiled
+    scalar code and the numpy code compute the same expressions.
+    """
+
+    def __init__(self) -> None:
+        super().__init__({"fully_qualified_modules": False})
+
+    def _print_Float(self, expr):
+        return repr(float(expr))
+
+    def _print_Abs(self, expr):
+        return f"abs({self._print(expr.args[0])})"
+
+    def _print_sign(self, expr):
+        return f"sign({self._print(expr.args[0])})"
+
+    def _print_Pow(self, expr, rational=False):
+        # numba raises ZeroDivisionError for 0.0 ** (negative integer), whatever
+        # the error model; 1 / 0.0 ** n is inf, as in numpy
+        base, exp = expr.as_base_exp()
+        if exp.is_number and exp.is_negative and exp != -sympy.S.Half:
+            return f"(1/{self._print(sympy.Pow(base, -exp, evaluate=False))})"
+        return super()._print_Pow(expr, rational=rational)
+
+    def _print_not_supported(self, expr):
+        raise ValueError(f"no scalar code for {type(expr).__name__}")
+
+
+def scalar_function(name: str, exprs: Sequence[sympy.Expr]) -> str:
+    """Source of ``def name(x, y)`` returning the expressions as floats (with cse).
+
+    Min/Max are rewritten by :func:`smooth_minmax`, common subexpressions
+    eliminated by :func:`sympy.cse`, and the code printed by :class:`ScalarPrinter`;
+    ValueError if an expression has no scalar code.
+
+    >>> x, y = sympy.symbols("x y", real=True)
+    >>> print(scalar_function("f", [x * y, abs(x - y)]), end="")
+    def f(x, y):
+        return (float(x*y), float(abs(x - y)),)
+    """
+    printer = ScalarPrinter()
+    subs, reduced = sympy.cse([smooth_minmax(sympy.sympify(e)) for e in exprs])
+    lines = [f"def {name}(x, y):"]
+    lines += [f"    {printer.doprint(s)} = {printer.doprint(e)}" for s, e in subs]
+    values = ", ".join(f"float({printer.doprint(e)})" for e in reduced)
+    lines.append(f"    return ({values},)")
+    return "\n".join(lines) + "\n"

@@ -104,7 +104,7 @@ from numpy.typing import NDArray
 from scipy.optimize import brentq
 
 from curvimesh.errors import ExpressionError, InputError, MetricError
-from curvimesh.expressions import parse_expression
+from curvimesh.expressions import parse_expression, scalar_function, smooth_minmax
 
 __all__ = [
     "DEGREES",
@@ -286,25 +286,13 @@ def _lambdify(exprs: list[sympy.Expr]) -> Callable[[NDArray, NDArray], NDArray]:
     return evaluate
 
 
-def _smooth_form(expr: sympy.Expr) -> sympy.Expr:
-    """Min/Max as (a + b ∓ |a − b|)/2, so that sympy differentiates and numpy broadcasts."""
-
-    def fold(args: tuple, sign: int) -> sympy.Expr:
-        acc = args[0]
-        for other in args[1:]:
-            acc = (acc + other + sign * sympy.Abs(acc - other)) / 2
-        return acc
-
-    return expr.replace(sympy.Min, lambda *a: fold(a, -1)).replace(sympy.Max, lambda *a: fold(a, 1))
-
-
 def _derivatives(expr: sympy.Expr, order: int) -> list[sympy.Expr]:
     """All partial derivatives of order ``order``, ∂^order f / ∂x^(order−j) ∂y^j, j = 0..order.
 
     Delta functions (from differentiating abs) are dropped: their support has
     measure zero. Raises ValueError if sympy cannot differentiate in closed form.
     """
-    expr = _smooth_form(expr)
+    expr = smooth_minmax(expr)
     out = []
     for j in range(order + 1):
         term = sympy.diff(expr, *([X] * (order - j) + [Y] * j))
@@ -328,7 +316,7 @@ def compile_function(text: str, *, source: str = "function") -> Callable[[NDArra
         expr = parse_expression(text, {"x": X, "y": Y})
     except ExpressionError as exc:
         raise InputError(f"{source}: {exc}") from None
-    fn = _lambdify([_smooth_form(expr)])
+    fn = _lambdify([smooth_minmax(expr)])
 
     def f(points: NDArray) -> NDArray:
         points = np.asarray(points, dtype=float).reshape(-1, 2)
@@ -362,7 +350,7 @@ class InterpolationMetric:
     """The L^p interpolation-error metric of a function (see the module docstring).
 
     A metric component with the interface of :class:`curvimesh.metric.Component`:
-    :meth:`evaluate`, :meth:`sizes_at` and :attr:`key`. Construction compiles
+    :meth:`evaluate`, :meth:`sizes_at`, :meth:`scalar_source` and :attr:`key`. Construction compiles
     the derivatives of ``function`` and fixes the scale from the box
     quadrature; it raises ValueError if the function has no closed-form
     derivatives, is not finite on the box, or if ``vertices`` is out of the
@@ -381,6 +369,7 @@ class InterpolationMetric:
     box: tuple[float, float, float, float] = (0.0, 0.0, 1.0, 1.0)
     key: str = "metric.interpolation"
     quadrature_cells: int = 128
+    _derivatives: tuple[sympy.Expr, ...] = field(init=False, repr=False, compare=False)
     _fn: Callable = field(init=False, repr=False, compare=False)
     _values: Callable = field(init=False, repr=False, compare=False)
     _log_scale: float = field(init=False, repr=False, compare=False)
@@ -396,8 +385,10 @@ class InterpolationMetric:
             raise ValueError(f"sizes must satisfy 0 < HMIN <= HMAX, got {self.sizes!r}")
         if not (math.isfinite(self.vertices) and self.vertices > 0):
             raise ValueError(f"vertices must be positive, got {self.vertices!r}")
-        object.__setattr__(self, "_fn", _lambdify(_derivatives(self.function, self.degree + 1)))
-        object.__setattr__(self, "_values", _lambdify([_smooth_form(self.function)]))
+        derivatives = tuple(_derivatives(self.function, self.degree + 1))
+        object.__setattr__(self, "_derivatives", derivatives)
+        object.__setattr__(self, "_fn", _lambdify(list(derivatives)))
+        object.__setattr__(self, "_values", _lambdify([smooth_minmax(self.function)]))
         h = self.step
         shifts = np.array([[0.0, 0.0], [h, 0.0], [-h, 0.0], [0.0, h], [0.0, -h]])
         object.__setattr__(self, "_shifts", shifts[:, None, :])
@@ -516,6 +507,60 @@ class InterpolationMetric:
             backward = (g - minus) / h
             dg[..., k] = np.where(ok_p & ok_m, central, np.where(ok_p, forward, backward))
         return g, dg
+
+    def scalar_source(self, name: str) -> str:
+        """Source of ``name_g(x, y)`` (g11, g12, g22) and ``name_gd(x, y)`` (with ∂ₓg, ∂ᵧg)
+        for :func:`curvimesh.kernels.compile_metric`: :meth:`evaluate` at one point.
+
+        ``name_f(x, y)`` returns the derivatives of order k + 1 of f, the very
+        expressions that :meth:`shape` evaluates with numpy, printed as scalar code
+        (:func:`curvimesh.expressions.scalar_function`); ``name_g`` passes them to
+        the kernels' scalar twins of :func:`cubic_shape` (or :func:`hessian_shape`)
+        and of the scaling and clamp of :meth:`_tensor`
+        (:func:`curvimesh.kernels.interpolation_tensor`), with this metric's
+        constants (HMAX/HMIN, log D, β, the clamp bounds) written as exact
+        literals; ``name_gd`` takes the central differences of ``name_g`` with
+        step :attr:`step`, one-sided where a shifted tensor is not finite
+        (:func:`curvimesh.kernels.central_differences`). The shifted points are
+        formed as :meth:`evaluate` forms them (point + (±h, 0.0), ...).
+
+        The twins repeat numpy's operations in its order, so the values differ
+        only by the last bits of the elementary functions (the C library's
+        against numpy's own tanh, exp, log), amplified by the conditioning of
+        the construction: 1e-12 relative where it is well conditioned, more
+        where a derivative of f cancels (1 − tanh²(u) far from a tanh front) or
+        the frame is within a small angle δ of an axis (the half-angle formulas
+        lose digits there: about ε/δ); the derivatives by that over the step.
+        ValueError if a derivative has no scalar code.
+        """
+        hmin, hmax = self.sizes
+        shape = "hessian_shape" if self.degree == 1 else "cubic_shape"
+        args = ", ".join(f"d[{i}]" for i in range(self.degree + 2))
+        constants = (
+            self._log_scale,
+            self.exponents[1],
+            -2.0 * math.log(hmax),  # the clamp of log μ, as in _tensor
+            -2.0 * math.log(hmin),
+        )
+        scaling = ", ".join(repr(float(c)) for c in constants)
+        h = self.step
+        shifted = "".join(  # the points of evaluate: point + shift, (0, 0) included
+            f"        {name}_g(x + {float(sx)!r}, y + {float(sy)!r}),\n"
+            for sx, sy in self._shifts[:, 0, :]
+        )
+        return (
+            scalar_function(f"{name}_f", self._derivatives)
+            + f"""
+def {name}_g(x, y):
+    d = {name}_f(x, y)
+    return interpolation_tensor({shape}({args}, {float(hmax / hmin)!r}), {scaling})
+
+def {name}_gd(x, y):
+    return central_differences(
+{shifted}        {h!r},
+    )
+"""
+        )
 
     def sizes_at(self, pts: NDArray) -> NDArray:
         """The clamped sizes (h₁ along e₁, h₂ across) at points, ``(n, 2)``."""

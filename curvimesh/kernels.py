@@ -929,3 +929,188 @@ def metric_areas(fn, nodes, shape, du, dv, w, out):
             dens = math.sqrt(g[0] * g[2] - g[1] * g[1])
             acc += dens * (xu * yv - xv * yu) * w[k]
         out[i] = acc
+
+
+# --------------------------------------------------------------------------- #
+# The interpolation metric at one point (helpers for generated metric code)    #
+# --------------------------------------------------------------------------- #
+#
+# Scalar twins of the construction of :mod:`curvimesh.interpolation` (shape,
+# continuous-mesh scaling, clamp, central differences), called by the code of
+# :meth:`curvimesh.interpolation.InterpolationMetric.scalar_source` with the
+# metric's constants as literals. Each does the numpy function's floating-point
+# operations in the same order, so that the two differ only by the last bits of
+# the elementary functions (the C library's log, exp, hypot against numpy's own)
+# and of the derivatives of f (the same expressions, printed for numpy and for
+# math); NaN propagates as there: np.maximum and np.clip keep a NaN, np.argmin
+# picks the first NaN.
+
+#: Floor of |derivative| before logarithms (``interpolation._TINY``).
+_TINY = 1e-300
+
+
+@njit(**_JIT)
+def _nan_max(a, b):
+    """np.maximum of two floats: NaN if either is NaN."""
+    if math.isnan(a) or math.isnan(b):
+        return math.nan
+    return a if a >= b else b
+
+
+@njit(**_JIT)
+def _clip(v, lo, hi):
+    """np.clip of one float: NaN stays NaN."""
+    if v < lo:
+        return lo
+    if v > hi:
+        return hi
+    return v
+
+
+@njit(**_JIT)
+def _log_floor(v):
+    """log(max(|v|, 1e-300)), NaN for NaN (as the numpy code)."""
+    return math.log(_nan_max(abs(v), _TINY))
+
+
+@njit(**_JIT)
+def shape_frame(g11, g12, g22):
+    """Unit eigenvector (cos φ, sin φ) of the larger eigenvalue of [[g11, g12], [g12, g22]].
+
+    :func:`curvimesh.interpolation._frame` at one point: cos 2φ = (g11 − g22)/2 / r,
+    r = hypot((g11 − g22)/2, g12), then the half-angle formulas; (1, 0) where r is
+    not positive (isotropic, or NaN).
+    """
+    half = 0.5 * (g11 - g22)
+    radius = math.hypot(half, g12)
+    cos2 = half / radius if radius > 0.0 else 1.0
+    cos = math.sqrt(0.5 + 0.5 * cos2)
+    sin = math.copysign(math.sqrt(0.5 - 0.5 * cos2), g12)
+    return cos, sin
+
+
+@njit(**_JIT)
+def cubic_shape(a, b, c, d, max_aspect):
+    """:func:`curvimesh.interpolation.cubic_shape` at one point: (cos φ, sin φ, X, Y).
+
+    The frame of G = Σ_jk T_ijk T_ljk of the cubic a u³ + 3b u²v + 3c uv² + d v³,
+    its coefficients |A|, |D|, |B|, |C| in the frame, and the minimum of
+    S = X + Y over t = X − Y in [−2 log max_aspect, 2 log max_aspect] among
+    the four crossings of the LP's bounds and the two ends (the first smallest,
+    as np.argmin).
+    """
+    g11 = a * a + 2.0 * b * b + c * c
+    g12 = a * b + 2.0 * b * c + c * d
+    g22 = b * b + 2.0 * c * c + d * d
+    cos, sin = shape_frame(g11, g12, g22)
+    m0, m1 = cos * cos * cos, cos * cos * sin
+    m2, m3 = cos * sin * sin, sin * sin * sin
+    v0 = _log_floor(a * m0 + 3.0 * (b * m1 + c * m2) + d * m3)
+    v1 = _log_floor(d * m0 - a * m3 + 3.0 * (b * m2 - c * m1))
+    v2 = _log_floor(b * (m0 - 2.0 * m2) + c * (2.0 * m1 - m3) + d * m2 - a * m1)
+    v3 = _log_floor(c * (m0 - 2.0 * m2) + b * (m3 - 2.0 * m1) + a * m2 + d * m1)
+    va, vd, vb, vc = (2.0 / 3.0) * v0, (2.0 / 3.0) * v1, 2.0 * v2, 2.0 * v3
+    cap = 2.0 * math.log(max_aspect)
+    best_s = math.inf
+    best_t = math.nan
+    for j in range(6):
+        if j == 0:
+            t = va - vd
+        elif j == 1:
+            t = 1.5 * va - 0.5 * vc
+        elif j == 2:
+            t = 0.5 * vb - 1.5 * vd
+        elif j == 3:
+            t = vb - vc
+        elif j == 4:
+            t = -cap
+        else:
+            t = cap
+        t = _clip(t, -cap, cap)
+        s = _nan_max(2.0 * va - t, 2.0 * vd + t)
+        s = _nan_max(s, (2.0 / 3.0) * vb - t / 3.0)
+        s = _nan_max(s, (2.0 / 3.0) * vc + t / 3.0)
+        if math.isnan(s):  # np.argmin: the first NaN
+            best_s, best_t = s, t
+            break
+        if j == 0 or s < best_s:
+            best_s, best_t = s, t
+    return cos, sin, 0.5 * (best_s + best_t), 0.5 * (best_s - best_t)
+
+
+@njit(**_JIT)
+def hessian_shape(fxx, fxy, fyy, max_aspect):
+    """:func:`curvimesh.interpolation.hessian_shape` at one point: (cos φ, sin φ, X, Y).
+
+    The eigenvector of the larger eigenvalue of H, the logs of the absolute
+    eigenvalues (mean ± radius), the smaller raised to the larger − 2 log max_aspect.
+    """
+    mean = 0.5 * (fxx + fyy)
+    radius = math.hypot(0.5 * (fxx - fyy), fxy)
+    cos, sin = shape_frame(fxx, fxy, fyy)
+    x_log = _log_floor(mean + radius)
+    y_log = _log_floor(mean - radius)
+    floor = _nan_max(x_log, y_log) - 2.0 * math.log(max_aspect)
+    return cos, sin, _nan_max(x_log, floor), _nan_max(y_log, floor)
+
+
+@njit(**_JIT)
+def tensor_from_frame(cos, sin, l1, l2):
+    """:func:`curvimesh.interpolation.tensor_from_frame` at one point: (g11, g12, g22)
+    with eigenvalue l1 along (cos φ, sin φ) and l2 across it."""
+    cc, ss, cs = cos * cos, sin * sin, (l1 - l2) * cos * sin
+    return l1 * cc + l2 * ss, cs, l1 * ss + l2 * cc
+
+
+@njit(**_JIT)
+def interpolation_tensor(shape, log_scale, beta, lo, hi):
+    """The metric (g11, g12, g22) of a shape (cos φ, sin φ, X, Y), as
+    ``InterpolationMetric._tensor``: log μᵢ = log D + β (X + Y) + (X or Y), clamped
+    to [lo, hi] = [−2 log HMAX, −2 log HMIN], eigenvalues μᵢ along e₁ and e₂."""
+    cos, sin, x_log, y_log = shape
+    common = log_scale + beta * (x_log + y_log)
+    mu1 = math.exp(_clip(common + x_log, lo, hi))
+    mu2 = math.exp(_clip(common + y_log, lo, hi))
+    return tensor_from_frame(cos, sin, mu1, mu2)
+
+
+@njit(**_JIT)
+def central_differences(g, px, mx, py, my, h):
+    """(g, ∂ₓg, ∂ᵧg) as a 9-tuple from g at (x, y) and at (x ± h, y), (x, y ± h).
+
+    As ``InterpolationMetric.evaluate(derivatives=True)``: (g(+h) − g(−h)) · (0.5/h);
+    where that is not finite, per direction: (g(+h) − g(−h)) / 2h where both
+    shifted values are finite, (g(+h) − g)/h where only g(+h) is, else (g − g(−h))/h.
+    """
+    s = 0.5 / h
+    d = (
+        g[0], g[1], g[2],
+        (px[0] - mx[0]) * s, (px[1] - mx[1]) * s, (px[2] - mx[2]) * s,
+        (py[0] - my[0]) * s, (py[1] - my[1]) * s, (py[2] - my[2]) * s,
+    )  # fmt: skip
+    if finite9(d):
+        return d
+    dx = _one_sided(g, px, mx, h)
+    dy = _one_sided(g, py, my, h)
+    return (g[0], g[1], g[2], dx[0], dx[1], dx[2], dy[0], dy[1], dy[2])
+
+
+@njit(**_JIT)
+def _one_sided(g, p, m, h):
+    """One direction of :func:`central_differences` where the central one is not finite."""
+    if finite3(p) and finite3(m):
+        w = 2.0 * h
+        return (p[0] - m[0]) / w, (p[1] - m[1]) / w, (p[2] - m[2]) / w
+    if finite3(p):
+        return (p[0] - g[0]) / h, (p[1] - g[1]) / h, (p[2] - g[2]) / h
+    return (g[0] - m[0]) / h, (g[1] - m[1]) / h, (g[2] - m[2]) / h
+
+
+#: :data:`HELPERS` with the interpolation metric's (appended here, beside their section).
+HELPERS = {
+    **HELPERS,
+    "cubic_shape": cubic_shape,
+    "hessian_shape": hessian_shape,
+    "interpolation_tensor": interpolation_tensor,
+    "central_differences": central_differences,
+}

@@ -37,11 +37,10 @@ import sympy
 import yaml
 from numpy.typing import NDArray
 from sympy.printing.numpy import NumPyPrinter
-from sympy.printing.pycode import PythonCodePrinter
 
 from curvimesh import kernels
 from curvimesh.errors import ExpressionError, MetricError
-from curvimesh.expressions import FUNCTIONS, parse_expression
+from curvimesh.expressions import FUNCTIONS, parse_expression, scalar_function, smooth_minmax
 from curvimesh.interpolation import InterpolationMetric, parse_interpolation
 
 X, Y = sympy.symbols("x y", real=True)
@@ -165,18 +164,6 @@ def intersect_with_derivatives(a: tuple, da: list, b: tuple, db: list) -> tuple[
 # --------------------------------------------------------------------------- #
 
 
-def _rewrite_minmax(expr: sympy.Expr) -> sympy.Expr:
-    """Rewrite Min/Max as (a + b ∓ |a − b|)/2 so lambdify broadcasts and diff works."""
-
-    def fold(args, sign):
-        acc = args[0]
-        for b in args[1:]:
-            acc = (acc + b + sign * sympy.Abs(acc - b)) / 2
-        return acc
-
-    return expr.replace(sympy.Min, lambda *a: fold(a, -1)).replace(sympy.Max, lambda *a: fold(a, 1))
-
-
 class _FastPrinter(NumPyPrinter):
     """numpy code with small integer powers written as products.
 
@@ -196,7 +183,7 @@ class _FastPrinter(NumPyPrinter):
 
 def _compile(exprs: Sequence[sympy.Expr]) -> Callable[[NDArray, NDArray], list[NDArray]]:
     """Lambdify expressions of (x, y) into one vectorised function (with cse)."""
-    exprs = [_rewrite_minmax(sympy.sympify(e)) for e in exprs]
+    exprs = [smooth_minmax(sympy.sympify(e)) for e in exprs]
     fn = sympy.lambdify((X, Y), exprs, modules="numpy", cse=True, printer=_FastPrinter)
 
     def evaluate(x: NDArray, y: NDArray) -> list[NDArray]:
@@ -210,49 +197,6 @@ def _compile(exprs: Sequence[sympy.Expr]) -> Callable[[NDArray, NDArray], list[N
         ]
 
     return evaluate
-
-
-class _ScalarPrinter(PythonCodePrinter):
-    """Python code of one point for :func:`curvimesh.kernels.compile_metric`.
-
-    Bare names of ``math`` functions, ``abs`` and the kernels' ``sign``, and
-    every float written exactly (its shortest repr), so that the compiled
-    scalar code and the numpy code compute the same expressions.
-    """
-
-    def __init__(self) -> None:
-        super().__init__({"fully_qualified_modules": False})
-
-    def _print_Float(self, expr):
-        return repr(float(expr))
-
-    def _print_Abs(self, expr):
-        return f"abs({self._print(expr.args[0])})"
-
-    def _print_sign(self, expr):
-        return f"sign({self._print(expr.args[0])})"
-
-    def _print_Pow(self, expr, rational=False):
-        # numba raises ZeroDivisionError for 0.0 ** (negative integer), whatever
-        # the error model; 1 / 0.0 ** n is inf, as in numpy
-        base, exp = expr.as_base_exp()
-        if exp.is_number and exp.is_negative and exp != -sympy.S.Half:
-            return f"(1/{self._print(sympy.Pow(base, -exp, evaluate=False))})"
-        return super()._print_Pow(expr, rational=rational)
-
-    def _print_not_supported(self, expr):
-        raise ValueError(f"no scalar code for {type(expr).__name__}")
-
-
-def _scalar_function(name: str, exprs: Sequence[sympy.Expr]) -> str:
-    """Source of ``def name(x, y)`` returning the expressions as floats (with cse)."""
-    printer = _ScalarPrinter()
-    subs, reduced = sympy.cse([_rewrite_minmax(sympy.sympify(e)) for e in exprs])
-    lines = [f"def {name}(x, y):"]
-    lines += [f"    {printer.doprint(s)} = {printer.doprint(e)}" for s, e in subs]
-    values = ", ".join(f"float({printer.doprint(e)})" for e in reduced)
-    lines.append(f"    return ({values},)")
-    return "\n".join(lines) + "\n"
 
 
 @dataclass(frozen=True)
@@ -273,7 +217,7 @@ class Component:
     def __post_init__(self) -> None:
         # min/max as (a + b ∓ |a − b|)/2 before differentiating: d|u| = sign(u) du
         # lambdifies plainly, where dMax (Heaviside) does not
-        g = tuple(_rewrite_minmax(sympy.sympify(e)) for e in self.g)
+        g = tuple(smooth_minmax(sympy.sympify(e)) for e in self.g)
         object.__setattr__(self, "g", g)
         exprs = list(self.g)
         exprs += [sympy.diff(e, X) for e in self.g]
@@ -321,7 +265,7 @@ class Component:
         """Source of ``name_g(x, y)`` (g11, g12, g22) and ``name_gd(x, y)`` (with ∂ₓg, ∂ᵧg)
         for :func:`curvimesh.kernels.compile_metric`; ValueError if an expression has none."""
         d = [sympy.diff(e, X) for e in self.g] + [sympy.diff(e, Y) for e in self.g]
-        return _scalar_function(f"{name}_g", self.g) + _scalar_function(f"{name}_gd", [*self.g, *d])
+        return scalar_function(f"{name}_g", self.g) + scalar_function(f"{name}_gd", [*self.g, *d])
 
 
 def _unpack(g: NDArray) -> tuple[NDArray, NDArray, NDArray]:
@@ -395,9 +339,11 @@ class MetricField:
         the components' expressions: the intersection folded left (its derivatives
         by complex step), a non-finite value replaced by the value 1e-9 box sizes
         away, NaN where g is not SPD, non-finite derivatives by central differences,
-        as :meth:`evaluate_numpy` does. None when a component has no expressions
-        (an ``interpolation`` form) or an expression has no scalar code."""
-        if not all(isinstance(c, Component) for c in self.components):
+        as :meth:`evaluate_numpy` does. Each component gives its own functions by
+        its ``scalar_source`` method (:meth:`Component.scalar_source`,
+        :meth:`~curvimesh.interpolation.InterpolationMetric.scalar_source`); None when a
+        component has no such method or an expression has no scalar code."""
+        if not all(callable(getattr(c, "scalar_source", None)) for c in self.components):
             return None
         try:
             parts = [c.scalar_source(f"c{k}") for k, c in enumerate(self.components)]

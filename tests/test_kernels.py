@@ -126,18 +126,6 @@ def test_constant_metric_shortest_parabola_on_the_compiled_path_is_the_segment()
     np.testing.assert_allclose(par.alpha, 0.0, atol=1e-3)
 
 
-def test_interpolation_metric_has_no_kernel_and_evaluates_by_numpy():
-    text = """
-domain: {box: [[0, 0], [1, 1]]}
-metric:
-  interpolation: {function: exp(x) * sin(3*y), vertices: 200, sizes: [0.01, 0.5]}
-"""
-    fld = load_metric_text(text)
-    assert fld.scalar_source is None and fld.kernel is None
-    g, _ = fld.evaluate(np.array([[0.5, 0.5]]))
-    assert np.isfinite(g).all()
-
-
 def test_compiled_metric_is_cached_on_disk_and_loads_from_it(tmp_path, monkeypatch):
     monkeypatch.setenv(kernels.CACHE_ENV, str(tmp_path))
     src = MetricField((Component((1 + X**2, X * Y / 10, 2 + sympy.sin(Y))),)).scalar_source
