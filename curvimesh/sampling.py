@@ -136,6 +136,28 @@ def _too_close_block(field: MetricField, a: NDArray, b: NDArray, min_dist: float
     return parabola_verdicts(field, a, b, short=min_dist, straight_order=4) < 0
 
 
+def close_to_index(
+    field: MetricField,
+    index: PointIndex,
+    x: NDArray,
+    radius: NDArray,
+    min_dist: float,
+    *,
+    exclude: NDArray | None = None,
+) -> NDArray:
+    """Whether each point ``x[i]`` ``(k, 2)`` is closer than ``min_dist`` (shortest
+    parabola, as :func:`too_close`) to a point of ``index`` in its search box of
+    half-widths ``radius`` ``(k, 2)``, ignoring the index point ``exclude[i]`` (``(k,)``,
+    −1 for none), ``(k,)``: nearest neighbours first (:func:`curvimesh.geodesic.any_closer`).
+    """
+    q, hit = index.query(x - radius, x + radius)
+    if exclude is not None:
+        other = hit != exclude[q]
+        q, hit = q[other], hit[other]
+    offsets = np.searchsorted(q, np.arange(len(x) + 1))  # q is sorted
+    return any_closer(field, x, index.points, offsets, hit, min_dist, straight_order=4)
+
+
 def _boundary_distance(field: MetricField, pts: NDArray) -> NDArray:
     """Metric length of the perpendicular segment from each point to the nearest side ``(n,)``."""
     xmin, ymin, xmax, ymax = field.box
@@ -211,9 +233,7 @@ def accept_candidates(
         return cand
     radius = search_halfwidths(field, cand, opt.search * opt.min_dist)
     # against the points kept so far
-    q, hit = index.query(cand - radius, cand + radius)
-    offsets = np.searchsorted(q, np.arange(len(cand) + 1))  # q is sorted
-    bad = any_closer(field, cand, index.points, offsets, hit, opt.min_dist, straight_order=4)
+    bad = close_to_index(field, index, cand, radius, opt.min_dist)
     cand, radius = cand[~bad], radius[~bad]
     # among the candidates themselves, greedily in order
     i, j = pairs_within_boxes(cand, radius)

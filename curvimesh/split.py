@@ -34,7 +34,7 @@ from curvimesh.geodesic import parabola_points, shortest_parabola
 from curvimesh.mesh import Mesh, independent_flips, local_edge, rotate_triangles
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths, edge_lengths_fast, metric_areas, quality_from
-from curvimesh.sampling import search_halfwidths, too_close
+from curvimesh.sampling import close_to_index, search_halfwidths
 from curvimesh.spatial import PointIndex
 
 #: Fractions of the optimal offset tried for a new edge's node, in order.
@@ -178,14 +178,9 @@ def _split_round(
         index = PointIndex()
         index.add(pts[corners])
         vp = pts[v[good]]
+        own = np.searchsorted(corners, v[good])  # the vertex's own index id
         hw = search_halfwidths(field, vp, 2.0 * min_dist)
-        qi, hit = index.query(vp - hw, vp + hw)
-        other = corners[hit] != v[good][qi]
-        qi, hit = qi[other], hit[other]
-        close = too_close(field, vp[qi], pts[corners[hit]], min_dist)
-        bad = np.zeros(len(good), dtype=bool)
-        bad[qi[close]] = True
-        good = good[~bad]
+        good = good[~close_to_index(field, index, vp, hw, min_dist, exclude=own)]
     if good.size == 0:
         return mesh, 0
     # non-conflicting, longest first
