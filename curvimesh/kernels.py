@@ -835,13 +835,16 @@ def metric_delaunay_flips(fn, pts, corners, nbr, nbr_k, max_rounds, bad):
 
 
 @njit(**_JIT)
-def _rtree_visit(boxes, first, count, leaf, ids, roots, pts, lo_x, lo_y, hi_x, hi_y, out, n_out):
+def _rtree_visit(boxes, first, count, leaf, ids, xy, roots, lo_x, lo_y, hi_x, hi_y, out, n_out):
     """Ids of the points in [lo, hi] (closed) over the trees of ``roots``; writes them to
-    ``out`` from 0 when ``n_out`` > 0 (else only counts) and returns their number."""
+    ``out`` from 0 when ``n_out`` > 0 (else only counts) and returns their number.
+
+    ``xy`` holds the points' coordinates in the order of ``ids`` (leaf by leaf), so
+    that a leaf's points are read from consecutive memory; a leaf whose box lies
+    inside the query box is taken whole."""
     stack = np.empty(64, dtype=np.int64)
     found = 0
     for r in range(roots.shape[0]):
-        top = 0
         stack[0] = roots[r]
         top = 1
         while top > 0:
@@ -853,12 +856,16 @@ def _rtree_visit(boxes, first, count, leaf, ids, roots, pts, lo_x, lo_y, hi_x, h
                 continue
             start = first[node]
             if leaf[node]:
+                whole = (
+                    lo_x <= boxes[node, 0]
+                    and boxes[node, 2] <= hi_x
+                    and lo_y <= boxes[node, 1]
+                    and boxes[node, 3] <= hi_y
+                )
                 for k in range(start, start + count[node]):
-                    p = ids[k]
-                    x, y = pts[p, 0], pts[p, 1]
-                    if lo_x <= x <= hi_x and lo_y <= y <= hi_y:
+                    if whole or (lo_x <= xy[k, 0] <= hi_x and lo_y <= xy[k, 1] <= hi_y):
                         if n_out > 0:
-                            out[found] = p
+                            out[found] = ids[k]
                         found += 1
             else:
                 for k in range(start, start + count[node]):
@@ -872,7 +879,7 @@ def _rtree_visit(boxes, first, count, leaf, ids, roots, pts, lo_x, lo_y, hi_x, h
 
 
 @_row_kernel
-def rtree_count(mins, maxs, boxes, first, count, leaf, ids, roots, pts, counts):
+def rtree_count(mins, maxs, boxes, first, count, leaf, ids, xy, roots, counts):
     """Number of indexed points in each query box ``[mins[q], maxs[q]]`` into ``counts``.
 
     The index is packed R-trees (:mod:`curvimesh.spatial`): node bounding boxes
@@ -881,19 +888,19 @@ def rtree_count(mins, maxs, boxes, first, count, leaf, ids, roots, pts, counts):
     dummy = np.empty(0, dtype=np.int64)
     for q in prange(mins.shape[0]):
         counts[q] = _rtree_visit(
-            boxes, first, count, leaf, ids, roots, pts,
+            boxes, first, count, leaf, ids, xy, roots,
             mins[q, 0], mins[q, 1], maxs[q, 0], maxs[q, 1], dummy, 0,
         )  # fmt: skip
 
 
 @_row_kernel
-def rtree_fill(mins, maxs, boxes, first, count, leaf, ids, roots, pts, offsets, hits):
+def rtree_fill(mins, maxs, boxes, first, count, leaf, ids, xy, roots, offsets, hits):
     """The ids of :func:`rtree_count`'s points, query after query from ``offsets``,
     each query's ids in ascending order."""
     for q in prange(mins.shape[0]):
         seg = hits[offsets[q] : offsets[q + 1]]
         n = _rtree_visit(
-            boxes, first, count, leaf, ids, roots, pts,
+            boxes, first, count, leaf, ids, xy, roots,
             mins[q, 0], mins[q, 1], maxs[q, 0], maxs[q, 1], seg, offsets[q + 1] - offsets[q],
         )  # fmt: skip
         seg[:n].sort()

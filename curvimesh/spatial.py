@@ -55,7 +55,7 @@ class PackedTree:
     def __init__(self, ids: NDArray, pts: NDArray, capacity: int = CAPACITY) -> None:
         order = _str_order(pts, capacity)
         self.ids = np.ascontiguousarray(ids[order], dtype=np.int64)
-        p = pts[order]
+        p = self.xy = np.ascontiguousarray(pts[order], dtype=np.float64)
         starts = np.arange(0, len(p), capacity)
         boxes = _run_boxes(np.column_stack([p, p]), starts)
         levels = [(boxes, starts, np.diff(np.append(starts, len(p))))]
@@ -76,7 +76,7 @@ class PackedTree:
         self.root = len(self.boxes) - 1
 
 
-def _query(trees: list[PackedTree], pts: NDArray, mins: NDArray, maxs: NDArray):
+def _query(trees: list[PackedTree], mins: NDArray, maxs: NDArray):
     """Pairs (query index, point id) of the points of ``trees`` in each box, sorted."""
     mins = np.ascontiguousarray(mins, dtype=np.float64).reshape(-1, 2)
     maxs = np.ascontiguousarray(maxs, dtype=np.float64).reshape(-1, 2)
@@ -95,10 +95,10 @@ def _query(trees: list[PackedTree], pts: NDArray, mins: NDArray, maxs: NDArray):
     count = np.concatenate([t.count for t in trees])
     leaf = np.concatenate([t.leaf for t in trees])
     ids = np.concatenate([t.ids for t in trees])
+    xy = np.concatenate([t.xy for t in trees])
     roots = np.array([t.root + nb for t, nb in zip(trees, node_base, strict=True)], dtype=np.int64)
-    pts = np.ascontiguousarray(pts, dtype=np.float64)
     counts = np.empty(len(mins), dtype=np.int64)
-    args = (boxes, first, count, leaf, ids, roots, pts)
+    args = (boxes, first, count, leaf, ids, xy, roots)
     kernels.rtree_count(mins, maxs, *args, counts)
     offsets = np.zeros(len(mins) + 1, dtype=np.int64)
     np.cumsum(counts, out=offsets[1:])
@@ -148,7 +148,7 @@ class PointIndex:
 
         Boxes are ``mins``, ``maxs`` ``(q, 2)``.
         """
-        return _query(self._trees, self.points, mins, maxs)
+        return _query(self._trees, mins, maxs)
 
 
 def pairs_within_boxes(pts: NDArray, radius: NDArray) -> tuple[NDArray, NDArray]:
@@ -163,7 +163,7 @@ def pairs_within_boxes(pts: NDArray, radius: NDArray) -> tuple[NDArray, NDArray]
     pts = np.asarray(pts, dtype=float)
     r = np.asarray(radius, dtype=float)
     r = r[:, None] if r.ndim == 1 else r
-    a, b = _query([PackedTree(np.arange(n), pts)], pts, pts - r, pts + r)
+    a, b = _query([PackedTree(np.arange(n), pts)], pts - r, pts + r)
     keep = a != b
     pair = np.unique(np.column_stack([np.minimum(a, b), np.maximum(a, b)])[keep], axis=0)
     return pair[:, 0], pair[:, 1]
