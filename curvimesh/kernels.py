@@ -4,7 +4,7 @@ The vectorised numpy code of :mod:`curvimesh.geodesic` spends most of its
 time outside arithmetic: temporaries of shape (rows, quadrature points, 2, 2),
 einsums, and Python overhead on the small arrays of an iterative search's
 last rows. Here the same algorithms run one row at a time in machine code,
-rows in parallel (``prange``), calling the metric as a compiled scalar
+the rows of large calls in parallel (``prange``), calling the metric as a compiled scalar
 function ``g(x, y)`` (a numba ``cfunc`` built once per metric field by
 :func:`compile_metric`, passed to the kernels as a first-class function, so
 that each kernel is compiled once, cached on disk, and serves every metric).
@@ -38,7 +38,8 @@ from pathlib import Path
 
 # GNU OpenMP (numba's threading layer where libgomp is found) spins while it waits
 # for its threads: with another process on the other core, adapt of the 9,746-vertex
-# toy took 19 s instead of 8; waiting passively, 8 s. Set before numba starts it.
+# toy took 19 s instead of 8 (one run each); waiting passively, 8 s. Set before numba
+# starts it.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numba
@@ -58,7 +59,7 @@ _JIT = {"cache": True, "error_model": "numpy", "nogil": True}
 #: (``NUMBA_NUM_THREADS``, by default one per core). Below, starting the threads
 #: costs more than it saves, and far more when another process holds the other
 #: core: adapt of the 9,746-vertex toy took 24 s with every call spread over two
-#: threads and 8 s on one while a second job ran.
+#: threads and 8 s on one while a second job ran (one run each).
 PARALLEL_ROWS = 20_000
 
 
