@@ -103,6 +103,7 @@ import sympy
 from numpy.typing import NDArray
 from scipy.optimize import brentq
 
+from curvimesh import kernels
 from curvimesh.errors import ExpressionError, InputError, MetricError
 from curvimesh.expressions import parse_expression, scalar_function, smooth_minmax
 
@@ -345,6 +346,23 @@ def _box_rule(
     return np.column_stack([gx.ravel(), gy.ravel()]), np.outer(wx, wy).ravel()
 
 
+class ScalarFunction:
+    """A function f of (x, y): ``f(points)`` maps ``(n, 2)`` points to ``(n,)`` values
+    (numpy), and ``scalar`` is f compiled for one point, (x, y) ↦ f
+    (:data:`curvimesh.kernels.SIG_F`), for the kernels, or None."""
+
+    def __init__(self, values: Callable[[NDArray], NDArray], scalar: object = None) -> None:
+        self._values = values
+        self.scalar = scalar
+
+    def __call__(self, pts: NDArray) -> NDArray:
+        return self._values(pts)
+
+
+#: Compiled scalar forms of functions, by their source (:meth:`InterpolationMetric.error_function`).
+_COMPILED: dict[str, object] = {}
+
+
 @dataclass(frozen=True)
 class InterpolationMetric:
     """The L^p interpolation-error metric of a function (see the module docstring).
@@ -464,6 +482,20 @@ class InterpolationMetric:
         return brentq(
             lambda s: math.log(vertices(s)) - math.log(target), low, high, xtol=1e-12, rtol=1e-14
         )
+
+    def error_function(self, *, compiled: bool = True) -> ScalarFunction:
+        """f as a :class:`ScalarFunction`: :meth:`values`, and (if ``compiled`` and f
+        has scalar code) its compiled scalar form, compiled once per function."""
+        if not compiled:
+            return ScalarFunction(self.values)
+        try:
+            source = scalar_function("f_values", [smooth_minmax(self.function)])
+        except ValueError:
+            return ScalarFunction(self.values)
+        source += "\ndef f(x, y):\n    return f_values(x, y)[0]\n"
+        if source not in _COMPILED:
+            _COMPILED[source] = kernels.compile_function(source, "f")
+        return ScalarFunction(self.values, _COMPILED[source])
 
     def values(self, pts: NDArray) -> NDArray:
         """The function f at ``(n, 2)`` points, ``(n,)``."""

@@ -33,7 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from curvimesh.bezier import p2_jacobian, p2_shape
+from curvimesh import kernels
+from curvimesh.bezier import p2_jacobian, p2_shape, p2_shape_grad
 from curvimesh.errors import InputError
 from curvimesh.mesh import Mesh
 from curvimesh.quality import triangle_rule
@@ -118,9 +119,21 @@ def element_l2_squared(
 
     The isoparametric interpolant and the collapsed Gauss rule of ``order`` of
     :func:`interpolation_error`, whose squared L2 error is the sum of these;
-    f is evaluated at the nodes and the quadrature points.
+    f is evaluated at the nodes and the quadrature points. An ``f`` with a
+    compiled scalar form (a ``scalar`` attribute, :class:`curvimesh.interpolation.
+    ScalarFunction`) is integrated by :func:`curvimesh.kernels.element_l2_squared`
+    on P2 elements.
     """
     uv, w = triangle_rule(order)
+    scalar = getattr(f, "scalar", None)
+    if scalar is not None and nodes.shape[1] == 6:
+        grad = p2_shape_grad(uv)
+        out = np.empty(len(nodes))
+        kernels.element_l2_squared(
+            scalar, np.ascontiguousarray(nodes, dtype=float), p2_shape(uv),
+            np.ascontiguousarray(grad[:, :, 0]), np.ascontiguousarray(grad[:, :, 1]), w, out,
+        )  # fmt: skip
+        return out
     values = np.asarray(f(nodes.reshape(-1, 2)), dtype=float).reshape(nodes.shape[:2])
     err, jac = _element_errors(f, nodes, values, uv)
     return (err * err * jac) @ w

@@ -51,6 +51,8 @@ from numpy.typing import NDArray
 SIG_G = types.UniTuple(float64, 3)(float64, float64)
 #: Signature of a scalar metric with its first derivatives: (x, y) ↦ 9 values.
 SIG_GD = types.UniTuple(float64, 9)(float64, float64)
+#: Signature of a scalar function of (x, y).
+SIG_F = float64(float64, float64)
 
 _JIT = {"cache": True, "error_model": "numpy", "nogil": True}
 
@@ -214,13 +216,6 @@ class CompiledMetric:
 #: user's cache directory); ``off`` compiles in memory at every run.
 CACHE_ENV = "CURVIMESH_CACHE"
 
-_MODULE_FOOT = """
-for _name in {helpers!r}:
-    globals()[_name] = njit(error_model="numpy", cache=True)(globals()[_name])
-{g_name}_cfunc = cfunc(SIG_G, error_model="numpy", cache=True)({g_name})
-{gd_name}_cfunc = cfunc(SIG_GD, error_model="numpy", cache=True)({gd_name})
-"""
-
 
 def compile_metric(source: str, g_name: str, gd_name: str) -> CompiledMetric:
     """Compile generated Python source into the two scalar functions of a metric.
@@ -236,14 +231,31 @@ def compile_metric(source: str, g_name: str, gd_name: str) -> CompiledMetric:
     a fraction of the time after. Where that directory cannot be written,
     the source is compiled in memory.
     """
+    ns = _load_generated(source, {g_name: "SIG_G", gd_name: "SIG_GD"})
+    return CompiledMetric(ns[f"{g_name}_cfunc"], ns[f"{gd_name}_cfunc"])
+
+
+def compile_function(source: str, name: str):
+    """A scalar function (x, y) ↦ value (:data:`SIG_F`) from generated source, as
+    :func:`compile_metric` compiles a metric (the same cache)."""
+    return _load_generated(source, {name: "SIG_F"})[f"{name}_cfunc"]
+
+
+def _load_generated(source: str, entries: Mapping[str, str]) -> dict:
+    """The namespace of the generated module of ``source``: its functions jitted and,
+    for each entry point, ``{name}_cfunc`` compiled with the named signature."""
     names = re.findall(r"^def (\w+)\(", source, flags=re.MULTILINE)
-    helpers = [n for n in names if n not in (g_name, gd_name)]
+    helpers = [n for n in names if n not in entries]
+    foot = f"\nfor _name in {helpers!r}:\n"
+    foot += '    globals()[_name] = njit(error_model="numpy", cache=True)(globals()[_name])\n'
+    for name, sig in entries.items():
+        foot += f'{name}_cfunc = cfunc({sig}, error_model="numpy", cache=True)({name})\n'
     text = (
-        "# curvimesh: a metric compiled by curvimesh.kernels.compile_metric (safe to delete)\n"
+        "# curvimesh: code compiled by curvimesh.kernels (safe to delete)\n"
         "import math\nfrom math import *\nfrom numba import cfunc, njit\n"
-        f"from curvimesh.kernels import SIG_G, SIG_GD, {', '.join(HELPERS)}\n\n"
+        f"from curvimesh.kernels import SIG_F, SIG_G, SIG_GD, {', '.join(HELPERS)}\n\n"
         + source
-        + _MODULE_FOOT.format(helpers=helpers, g_name=g_name, gd_name=gd_name)
+        + foot
     )
     directory = _cache_directory()
     if directory is not None:
@@ -260,13 +272,12 @@ def compile_metric(source: str, g_name: str, gd_name: str) -> CompiledMetric:
             module = importlib.util.module_from_spec(spec)
             sys.modules[name] = module  # numba's cache finds the module's functions by name
             spec.loader.exec_module(module)
-            ns = vars(module)
+            return vars(module)
         except Exception:  # an unwritable or broken cache: compile in memory below
-            ns = None
-    if directory is None or ns is None:
-        ns = {}
-        exec(compile(text.replace("cache=True", "cache=False"), "<curvimesh metric>", "exec"), ns)
-    return CompiledMetric(ns[f"{g_name}_cfunc"], ns[f"{gd_name}_cfunc"])
+            pass
+    ns: dict = {}
+    exec(compile(text.replace("cache=True", "cache=False"), "<curvimesh generated>", "exec"), ns)
+    return ns
 
 
 def _cache_directory() -> Path | None:
@@ -685,6 +696,42 @@ def shoot(fn, x0, v0, total, tol, max_iterations, end, vel, ok):
                 break
             if h < 1e-12 * L:
                 break
+
+
+# --------------------------------------------------------------------------- #
+# Interpolation error of a function on curved triangles                        #
+# --------------------------------------------------------------------------- #
+
+
+@_row_kernel
+def element_l2_squared(fn, nodes, shape, du, dv, w, out):
+    """∫_t (f − I f)² of the isoparametric P2 interpolant of f (a scalar function
+    (x, y) ↦ f, :data:`SIG_F`) on P2 triangles ``nodes`` ``(m, 6, 2)``, by the rule
+    (ξ_k, w_k) with the shape functions ``shape`` and their derivatives ``du``,
+    ``dv`` ``(k, 6)`` at its points: Σ_k w_k (f(x(ξ_k)) − Σ_a N_a(ξ_k) f(x_a))² |J(ξ_k)|,
+    J relative to corner 0 (as :func:`curvimesh.interpolation_error.element_l2_squared`)."""
+    for i in prange(nodes.shape[0]):
+        x0, y0 = nodes[i, 0, 0], nodes[i, 0, 1]
+        values = np.empty(6)
+        for a in range(6):
+            values[a] = fn(nodes[i, a, 0], nodes[i, a, 1])
+        acc = 0.0
+        for k in range(w.shape[0]):
+            px = py = interp = 0.0
+            xu = yu = xv = yv = 0.0
+            for a in range(6):
+                x, y = nodes[i, a, 0], nodes[i, a, 1]
+                px += shape[k, a] * x
+                py += shape[k, a] * y
+                interp += shape[k, a] * values[a]
+                lx, ly = x - x0, y - y0
+                xu += du[k, a] * lx
+                yu += du[k, a] * ly
+                xv += dv[k, a] * lx
+                yv += dv[k, a] * ly
+            err = fn(px, py) - interp
+            acc += err * err * abs(xu * yv - xv * yu) * w[k]
+        out[i] = acc
 
 
 # --------------------------------------------------------------------------- #

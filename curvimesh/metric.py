@@ -492,10 +492,11 @@ def field_gd(x, y):
 
     @property
     def error_function(self) -> Callable[[NDArray], NDArray] | None:
-        """The function f of the field's ``interpolation`` form (points ``(n, 2)`` → ``(n,)``),
+        """The function f of the field's ``interpolation`` form (points ``(n, 2)`` → ``(n,)``,
+        a :class:`curvimesh.interpolation.ScalarFunction`, compiled unless ``jit`` is off),
         when it has exactly one (alone or in an intersection); None otherwise."""
         forms = [c for c in self.components if isinstance(c, InterpolationMetric)]
-        return forms[0].values if len(forms) == 1 else None
+        return forms[0].error_function(compiled=self.jit) if len(forms) == 1 else None
 
     def validate(self, pts: NDArray) -> None:
         """Raise :class:`MetricError` if a size is not finite and positive, or g is not SPD."""
