@@ -1,13 +1,16 @@
 """What each optimisation beyond the paper's method adds, per metric.
 
-For every metric file, nine meshes, each stage added to the previous ones:
+For every metric file, ten meshes, each stage added to the previous ones:
 
 * ``paper``: the paper's method alone (Algorithm 1 sampling, Delaunay in
   the metric, geodesic P2 edges with backtracking, curvilinear swaps):
-  ``adapt --no-fill --no-relocate --no-insert --no-split --no-recurve --no-length-swaps
-  --no-shift --no-remove`` (``--no-fit`` too, which only acts on ``interpolation`` metrics);
+  ``adapt --no-fill --no-relocate --no-intrinsic --no-insert --no-split --no-recurve
+  --no-length-swaps --no-shift --no-remove`` (``--no-fit`` too, which only acts on
+  ``interpolation`` metrics);
 * ``+ fill``: and gap filling of the point cloud (:mod:`curvimesh.fill`);
 * ``+ relocate``: and vertex relocation (:mod:`curvimesh.smooth`);
+* ``+ intrinsic``: and intrinsic Delaunay flips where the metric's frame turns
+  by 60° or more per unit length (:mod:`curvimesh.intrinsic`; nothing elsewhere);
 * ``+ insert``: and vertex insertion at long curved edges (:mod:`curvimesh.insert`);
 * ``+ split``: and curvilinear edge splits (:mod:`curvimesh.split`);
 * ``+ recurve``: and edge nodes moved back towards their shortest parabolas
@@ -20,7 +23,7 @@ For every metric file, nine meshes, each stage added to the previous ones:
 
 The stages are shared where they coincide (one sampling with and one
 without filling, one triangulation per relocation setting, one curving of
-the relocated triangulation), which gives the same meshes as nine separate
+the relocated triangulation), which gives the same meshes as ten separate
 ``adapt`` runs. Every figure is from the
 report of SPEC section 4 (:func:`curvimesh.report.mesh_report`); seconds
 are the adaptation alone, for the whole pipeline of each row.
@@ -52,6 +55,7 @@ STAGES = (
     "paper",
     "+ fill",
     "+ relocate",
+    "+ intrinsic",
     "+ insert",
     "+ split",
     "+ recurve",
@@ -82,11 +86,12 @@ def _row(fld, stage: str, mesh, seconds: float, area: float) -> dict:
 
 
 def ablate(metric_path: str, seed: int = 0) -> dict:
-    """The nine rows of one metric file (see the module docstring)."""
+    """The ten rows of one metric file (see the module docstring)."""
     fld = load_metric(metric_path)
     area = pipeline.check_size(fld, pipeline.MAX_VERTICES)
     base = pipeline.AdaptOptions(
         seed=seed,
+        intrinsic=False,
         insert=False,
         split=False,
         recurve=False,
@@ -112,15 +117,24 @@ def ablate(metric_path: str, seed: int = 0) -> dict:
         ("paper", (False, False), ()),
         ("+ fill", (True, False), ()),
         ("+ relocate", (True, True), ()),
-        ("+ insert", (True, True), ("insert",)),
-        ("+ split", (True, True), ("insert", "split")),
-        ("+ recurve", (True, True), ("insert", "split", "recurve")),
-        ("+ length swaps", (True, True), ("insert", "split", "recurve", "length_swaps")),
-        ("+ shift", (True, True), ("insert", "split", "recurve", "length_swaps", "shift")),
+        ("+ intrinsic", (True, True), ("intrinsic",)),
+        ("+ insert", (True, True), ("intrinsic", "insert")),
+        ("+ split", (True, True), ("intrinsic", "insert", "split")),
+        ("+ recurve", (True, True), ("intrinsic", "insert", "split", "recurve")),
+        (
+            "+ length swaps",
+            (True, True),
+            ("intrinsic", "insert", "split", "recurve", "length_swaps"),
+        ),
+        (
+            "+ shift",
+            (True, True),
+            ("intrinsic", "insert", "split", "recurve", "length_swaps", "shift"),
+        ),
         (
             "+ remove",
             (True, True),
-            ("insert", "split", "recurve", "length_swaps", "shift", "remove"),
+            ("intrinsic", "insert", "split", "recurve", "length_swaps", "shift", "remove"),
         ),
     ):
         mesh0, t_before = p2[key]
@@ -131,7 +145,7 @@ def ablate(metric_path: str, seed: int = 0) -> dict:
 
 
 def table(results: list[dict]) -> str:
-    """The markdown table of all metrics, nine rows each."""
+    """The markdown table of all metrics, ten rows each."""
     head = (
         "| metric | stages | vertices | triangles | length min | length max | in [0.7, 1.4] "
         "| quality min | quality mean | valid | efficiency | seconds |\n"
@@ -154,9 +168,11 @@ def section(results: list[dict], seed: int) -> str:
     return (
         f"{BEGIN}\n\n"
         "Each optimisation added in turn to the paper's method (`bench/ablation.py`, "
-        f"seed {seed}): *paper* is `adapt --no-fill --no-relocate --no-insert --no-split "
-        "--no-recurve --no-length-swaps --no-shift --no-remove`, "
-        "*+ fill* adds gap filling, *+ relocate* vertex relocation, *+ insert* "
+        f"seed {seed}): *paper* is `adapt --no-fill --no-relocate --no-intrinsic --no-insert "
+        "--no-split --no-recurve --no-length-swaps --no-shift --no-remove`, "
+        "*+ fill* adds gap filling, *+ relocate* vertex relocation, *+ intrinsic* "
+        "intrinsic Delaunay flips where the metric's directions turn 60° or more per unit "
+        "length, *+ insert* "
         "vertex insertion at long edges, *+ split* curvilinear edge splits, *+ recurve* "
         "edge nodes moved back towards their shortest parabolas, *+ length swaps* swaps "
         "for edge lengths, *+ shift* vertices moved at the edges left long and at the "

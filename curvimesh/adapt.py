@@ -20,6 +20,7 @@ from curvimesh.errors import InputError
 from curvimesh.fill import fill_gaps
 from curvimesh.fit import fit_nodes
 from curvimesh.insert import insert_points
+from curvimesh.intrinsic import intrinsic_flips
 from curvimesh.mesh import Mesh
 from curvimesh.metric import UNIT_TRIANGLE_AREA, MetricField, density_integral
 from curvimesh.recurve import recurve
@@ -51,6 +52,7 @@ class AdaptOptions:
     fill: bool = True
     straight: bool = False
     relocate: bool = True
+    intrinsic: bool = True
     insert: bool = True
     split: bool = True
     recurve: bool = True
@@ -66,6 +68,7 @@ class AdaptOptions:
 STAGES = (
     "fill",
     "relocate",
+    "intrinsic",
     "insert",
     "split",
     "recurve",
@@ -133,7 +136,7 @@ def curve(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> 
 class SwapStage:
     """The mesh after the swap stage, and its counts of swaps, insertions, splits,
     swap rounds, re-curved edge nodes, node moves fitting an interpolation metric's
-    function, vertex shifts and vertex removals."""
+    function, vertex shifts, vertex removals and intrinsic flips."""
 
     mesh: Mesh
     swaps: int
@@ -144,10 +147,12 @@ class SwapStage:
     fitted: int = 0
     shifted: int = 0
     removed: int = 0
+    flips: int = 0
 
     def counts(self) -> str:
         """What the stage did, in one line."""
         return (
+            f"{self.flips} intrinsic flips, "
             f"{self.swaps} swaps in {self.rounds} rounds, {self.inserted} insertions, "
             f"{self.splits} splits, {self.recurved} re-curved nodes, {self.shifted} shifts, "
             f"{self.removed} removals, {self.fitted} fitting moves"
@@ -160,9 +165,11 @@ RECURVE_PASSES = 3
 
 
 def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> SwapStage:
-    """Stage 4: curvilinear edge swaps driven by quality (4), then (unless
-    ``options.insert`` is off) vertex insertions into the cavities of the long
-    curved edges (:mod:`curvimesh.insert`), (unless ``options.split`` is off)
+    """Stage 4: (unless ``options.intrinsic`` is off) intrinsic Delaunay flips where
+    the metric's frame turns fast (:mod:`curvimesh.intrinsic`), curvilinear edge
+    swaps driven by quality (4), then (unless ``options.insert`` is off) vertex
+    insertions into the cavities of the long curved edges (:mod:`curvimesh.insert`),
+    (unless ``options.split`` is off)
     splits of the long edges left at their nodes (:mod:`curvimesh.split`), and
     the last swaps: driven by quality and (unless ``options.length_swaps`` is off)
     edge lengths (:func:`curvimesh.swap.swap`), alternating (unless
@@ -182,6 +189,10 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
     where it succeeded (the longest edge of quartic, seed 1, 1.70 → 1.99).
     """
     opt = options or AdaptOptions()
+    flips = 0
+    if opt.intrinsic and not opt.straight:
+        fl = intrinsic_flips(fld, mesh)
+        mesh, flips = fl.mesh, fl.flips
     res = _swap.swap(fld, mesh, max_rounds=opt.max_swap_rounds, straight=opt.straight)
     mesh, swaps, rounds, splits, inserted, recurved = res.mesh, res.swaps, res.rounds, 0, 0, 0
     if opt.straight:
@@ -205,7 +216,9 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
     if opt.fit and function is not None:
         fr = fit_nodes(function, mesh)
         mesh, fitted = fr.mesh, fr.moves
-    return SwapStage(mesh, swaps, splits, rounds, inserted, recurved, fitted, shifted, removed)
+    return SwapStage(
+        mesh, swaps, splits, rounds, inserted, recurved, fitted, shifted, removed, flips
+    )
 
 
 def _last_swaps(

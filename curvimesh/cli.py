@@ -160,6 +160,10 @@ def _options(
 STAGE_HELP = {
     "fill": "No gap filling after Algorithm 1.",
     "relocate": "No vertex relocation.",
+    "intrinsic": (
+        "No intrinsic Delaunay flips (on curved edge lengths) where the metric's directions "
+        "turn 60 degrees or more per unit length."
+    ),
     "insert": "No vertex insertions at long curved edges.",
     "split": "No splits of long curved edges.",
     "recurve": "No re-curving of edge nodes towards their shortest parabolas.",
@@ -273,8 +277,8 @@ def _warn_turn(ctx: Context, fld: MetricField, sharpest: tuple | None = None) ->
         what, cure = "turn more than a full circle", ""
     click.echo(
         f"curvimesh: warning: {fld.source}: the metric's directions {what} within one unit "
-        f"length near ({px:.3g}, {py:.3g}); unit edges cannot follow them there "
-        f"(expect edges over 1.4){cure}",
+        f"length near ({px:.3g}, {py:.3g}); unit edges can hardly follow them there "
+        f"(edges over 1.4 may remain){cure}",
         err=True,
     )
 
@@ -433,13 +437,14 @@ def adapt(
     """All stages: sample | triangulate | curve | swap, in one process.
 
     The stages beyond the paper's method (gap filling, vertex relocation,
-    vertex insertion, edge splits, re-curving, swaps for lengths, vertex shifts,
-    vertex removals,
+    intrinsic flips where the metric's directions turn fast, vertex insertion,
+    edge splits, re-curving, swaps for lengths, vertex shifts, vertex removals,
     and for an interpolation metric edge nodes fitted to its function) run by
-    default; --no-fill, --no-relocate, --no-insert, --no-split, --no-recurve,
-    --no-length-swaps, --no-shift, --no-remove and --no-fit turn them off, so that the
-    paper's method alone is `--no-fill --no-relocate --no-insert --no-split
-    --no-recurve --no-length-swaps --no-shift --no-remove --no-fit`.
+    default; --no-fill, --no-relocate, --no-intrinsic, --no-insert, --no-split,
+    --no-recurve, --no-length-swaps, --no-shift, --no-remove and --no-fit turn them
+    off, so that the paper's method alone is `--no-fill --no-relocate --no-intrinsic
+    --no-insert --no-split --no-recurve --no-length-swaps --no-shift --no-remove
+    --no-fit`.
     """
     fld = load_metric(metric_path)
     _warn_turn(ctx, fld)

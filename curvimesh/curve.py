@@ -1,7 +1,8 @@
 """Curving a straight mesh: P2 edge nodes on geodesic parabolas, with backtracking.
 
 Every interior edge gets its middle node on its shortest parabola (paper
-equation (3)); a boundary edge keeps its node on its side, at the point that
+equation (3); with the node free in the plane where the metric's frame turns
+fast, :mod:`curvimesh.freenode`); a boundary edge keeps its node on its side, at the point that
 halves its metric length (kept within :data:`SIDE_NODE_RANGE` of the edge).
 Where a triangle comes out invalid (its Jacobian not positive everywhere,
 decided exactly), the edge nodes of its interior edges are moved back
@@ -18,7 +19,7 @@ from numpy.typing import NDArray
 from curvimesh.bezier import valid_exact
 from curvimesh.boundary import halving_points
 from curvimesh.errors import WorkError
-from curvimesh.geodesic import shortest_parabola
+from curvimesh.freenode import shortest_parabola
 from curvimesh.mesh import Mesh, boundary_sides, p1_of
 
 #: Halvings of α before an edge is made straight.

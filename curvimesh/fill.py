@@ -22,7 +22,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from curvimesh.geodesic import bounded_lengths
+from curvimesh.freenode import bounded_lengths
 from curvimesh.metric import MetricField
 from curvimesh.sampling import SamplingOptions, accept_candidates
 from curvimesh.spatial import PointIndex

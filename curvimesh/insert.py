@@ -55,7 +55,8 @@ from numpy.typing import NDArray
 
 from curvimesh.bezier import p2_map, valid_exact
 from curvimesh.fill import metric_circumcentres
-from curvimesh.geodesic import parabola_points, shortest_parabola
+from curvimesh.freenode import shortest_parabola
+from curvimesh.geodesic import parabola_points
 from curvimesh.mesh import Mesh, local_edge, rotate_triangles
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths, edge_lengths_fast, metric_areas, quality_from

@@ -16,7 +16,9 @@ Local edge ``k`` of a triangle joins its corners ``k`` and ``(k + 1) % 3``.
 A mesh without triangles (shape ``(0, 3)``) is a point cloud.
 
 The mesh is immutable: its arrays are read-only and the derived topology is
-computed once, on first use, and cached on the object.
+computed once, on first use, and cached on the object. An :class:`EdgeStore`
+keeps a node and a length per edge, keyed by its sorted corners, for the
+stages that change the triangles (swaps, intrinsic flips).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
+    "EdgeStore",
     "Mesh",
     "apply_flips",
     "boundary_sides",
@@ -422,3 +425,40 @@ def apply_flips(
     out[t1[chosen]] = np.column_stack([a[chosen], d[chosen], c[chosen]])
     out[t2[chosen]] = np.column_stack([d[chosen], b[chosen], c[chosen]])
     return out
+
+
+class EdgeStore:
+    """Middle nodes ``(k, 2)`` and lengths ``(k,)`` of edges, keyed by ``lo * n + hi``."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+        self.keys = np.zeros(0, dtype=np.int64)
+        self.mid = np.zeros((0, 2))
+        self.length = np.zeros(0)
+
+    def key(self, a: NDArray, b: NDArray) -> NDArray:
+        """Keys of the undirected edges (a, b)."""
+        return np.minimum(a, b) * self.n + np.maximum(a, b)
+
+    def find(self, keys: NDArray) -> tuple[NDArray, NDArray]:
+        """Positions of keys in the store and whether they are there."""
+        pos = np.searchsorted(self.keys, keys)
+        pos = np.minimum(pos, max(len(self.keys) - 1, 0))
+        found = (
+            (len(self.keys) > 0) & (self.keys[pos] == keys)
+            if len(self.keys)
+            else (np.zeros(len(keys), dtype=bool))
+        )
+        return pos, found
+
+    def add(self, keys: NDArray, mid: NDArray, length: NDArray) -> None:
+        """Insert or overwrite entries."""
+        k = np.concatenate([keys, self.keys])
+        order = np.argsort(k, kind="stable")  # new entries first among equal keys
+        k = k[order]
+        first = np.ones(len(k), dtype=bool)
+        first[1:] = k[1:] != k[:-1]
+        sel = order[first]
+        self.keys = k[first]
+        self.mid = np.concatenate([mid, self.mid])[sel]
+        self.length = np.concatenate([length, self.length])[sel]

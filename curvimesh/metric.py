@@ -486,6 +486,11 @@ def field_gd(x, y):
             dg[..., k] = (gp - gm) / (2 * h)
         return dg
 
+    @cached_property
+    def largest_turn(self) -> float:
+        """The largest :func:`frame_turn` on a 129 × 129 grid of the box (radians), once."""
+        return sharpest_turn(self)[0]
+
     def sizes(self, pts: NDArray) -> NDArray:
         """The user's size expressions (H, H1, H2 of every item) at points, ``(n, k)``."""
         return np.concatenate([c.sizes_at(pts) for c in self.components], axis=1)

@@ -45,7 +45,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from curvimesh.bezier import valid_exact
-from curvimesh.geodesic import parabola_length, shortest_parabola
+from curvimesh.freenode import shortest_parabola
+from curvimesh.geodesic import parabola_length
 from curvimesh.mesh import Mesh, independent_flips, local_edge
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths_fast, metric_areas, quality_from

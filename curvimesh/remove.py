@@ -33,7 +33,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from curvimesh.bezier import valid_exact
-from curvimesh.geodesic import parabola_length, shortest_parabola
+from curvimesh.freenode import shortest_parabola
+from curvimesh.geodesic import parabola_length
 from curvimesh.mesh import Mesh, rotate_triangles, signed_areas
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths, metric_areas, quality_from

@@ -52,7 +52,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from curvimesh.bezier import valid_exact
-from curvimesh.geodesic import shortest_parabola
+from curvimesh.freenode import shortest_parabola
 from curvimesh.mesh import Mesh
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths, edge_lengths_fast, metric_areas, quality_from

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from curvimesh.geodesic import parabola_verdicts, shortest_parabola
+from curvimesh.freenode import parabola_verdicts, shortest_parabola
 from curvimesh.mesh import Mesh, signed_areas
 from curvimesh.metric import MetricField
 from curvimesh.triangulate import metric_delaunay

@@ -30,7 +30,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from curvimesh.bezier import valid_exact
-from curvimesh.geodesic import parabola_points, shortest_parabola
+from curvimesh.freenode import shortest_parabola
+from curvimesh.geodesic import parabola_points
 from curvimesh.mesh import Mesh, independent_flips, local_edge, rotate_triangles
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths, edge_lengths_fast, metric_areas, quality_from

@@ -56,50 +56,21 @@ from numpy.typing import NDArray
 
 from curvimesh.bezier import valid_exact
 from curvimesh.curve import assemble_p2
-from curvimesh.geodesic import chord_lower_bound, shortest_parabola
-from curvimesh.mesh import Mesh, apply_flips, flip_candidates, independent_flips, p1_of
+from curvimesh.freenode import shortest_parabola
+from curvimesh.geodesic import chord_lower_bound
+from curvimesh.mesh import (
+    EdgeStore,
+    Mesh,
+    apply_flips,
+    flip_candidates,
+    independent_flips,
+    p1_of,
+)
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths_fast, metric_areas, quality_from
 
 #: Fractions of the optimal offset tried for a new edge's node, in order.
 BACKTRACK = (1.0, 0.5, 0.25, 0.125, 0.0)
-
-
-class EdgeStore:
-    """Middle nodes ``(k, 2)`` and lengths ``(k,)`` of edges, keyed by ``lo * n + hi``."""
-
-    def __init__(self, n: int) -> None:
-        self.n = n
-        self.keys = np.zeros(0, dtype=np.int64)
-        self.mid = np.zeros((0, 2))
-        self.length = np.zeros(0)
-
-    def key(self, a: NDArray, b: NDArray) -> NDArray:
-        """Keys of the undirected edges (a, b)."""
-        return np.minimum(a, b) * self.n + np.maximum(a, b)
-
-    def find(self, keys: NDArray) -> tuple[NDArray, NDArray]:
-        """Positions of keys in the store and whether they are there."""
-        pos = np.searchsorted(self.keys, keys)
-        pos = np.minimum(pos, max(len(self.keys) - 1, 0))
-        found = (
-            (len(self.keys) > 0) & (self.keys[pos] == keys)
-            if len(self.keys)
-            else (np.zeros(len(keys), dtype=bool))
-        )
-        return pos, found
-
-    def add(self, keys: NDArray, mid: NDArray, length: NDArray) -> None:
-        """Insert or overwrite entries."""
-        k = np.concatenate([keys, self.keys])
-        order = np.argsort(k, kind="stable")  # new entries first among equal keys
-        k = k[order]
-        first = np.ones(len(k), dtype=bool)
-        first[1:] = k[1:] != k[:-1]
-        sel = order[first]
-        self.keys = k[first]
-        self.mid = np.concatenate([mid, self.mid])[sel]
-        self.length = np.concatenate([length, self.length])[sel]
 
 
 def _row_keys(rows: NDArray) -> NDArray:

@@ -284,7 +284,7 @@ def test_frame_turn_is_zero_for_a_constant_metric_and_sharpest_turn_is_nearest_t
 
 
 def test_examples_turn_slowly_enough_and_the_tight_front_does_not():
-    """No example draws the warning; the known failure (metrics/hard) does, and
+    """No example draws the warning; the tight front (metrics/hard) does, and
     with its long size cut to 0.05 no longer. The directions follow the level
     sets x = 0.5 + c + 0.2 cos(3 pi y) of phi, whose curvature at the tips is
     0.2 (3 pi)^2 for every c: at the grid row y = 1 (a tip), one unit step of
