@@ -35,6 +35,7 @@ import re
 import sys
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from types import FunctionType
 
 # GNU OpenMP (numba's threading layer where libgomp is found) spins while it waits
 # for its threads: with another process on the other core, adapt of the 9,746-vertex
@@ -58,11 +59,11 @@ _JIT = {"cache": True, "error_model": "numpy", "nogil": True}
 
 
 #: Rows from which a row kernel spreads its rows over numba's threads
-#: (``NUMBA_NUM_THREADS``, by default one per core). Below, starting the threads
-#: costs more than it saves, and far more when another process holds the other
-#: core: adapt of the 9,746-vertex toy took 24 s with every call spread over two
-#: threads and 8 s on one while a second job ran (one run each).
-PARALLEL_ROWS = 20_000
+#: (``NUMBA_NUM_THREADS``, by default one per core). Measured on two cores: adapt of
+#: the 9,746-vertex toy 3.2 s with 20,000 (only the largest calls in parallel), 2.9 s
+#: with 2,000, 2.8 s with 500; two such runs at once, 3.8-3.9 s each (4.0-4.2 s each
+#: on one thread).
+PARALLEL_ROWS = 500
 
 
 def _row_kernel(py: Callable) -> Callable:
@@ -71,7 +72,11 @@ def _row_kernel(py: Callable) -> Callable:
 
     The rows are those of the second argument (after the metric function)."""
     serial = njit(**_JIT)(py)
-    parallel = njit(parallel=True, **_JIT)(py)
+    # a twin of its own name: numba's disk cache indexes functions by qualified name
+    # and signature, so the two variants of one function would load each other's code
+    twin = FunctionType(py.__code__, py.__globals__, f"{py.__name__}_parallel")
+    twin.__qualname__ = f"{py.__qualname__}_parallel"
+    parallel = njit(parallel=True, **_JIT)(twin)
 
     def run(fn, rows, *args):
         big = rows.shape[0] >= PARALLEL_ROWS and numba.get_num_threads() > 1

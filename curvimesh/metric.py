@@ -582,10 +582,12 @@ def frame_turn(g: NDArray, dg: NDArray, *, min_anisotropy: float = TURN_MIN_ANIS
 
 
 #: Turn (radians) of the principal directions within one unit length above
-#: which :func:`sharpest_turn` callers warn. Measured, not derived: every metric
-#: of metrics/ turns at most 57° and meshes to the targets; a cosine front with
-#: long size 0.08 and radius of curvature 0.056 turns 81° and leaves edges
-#: up to 4 long (sample_runs/README, "Where it still fails").
+#: which :func:`sharpest_turn` callers warn, and from which edges get free middle
+#: nodes (:mod:`curvimesh.freenode`). Measured, not derived: every metric of
+#: metrics/ turns at most 57° and meshes to the targets with the paper's
+#: symmetric parabolas; a cosine front with long size 0.08 and radius of
+#: curvature 0.056 turns 81° and left edges up to 5.6 long with them
+#: (sample_runs/README, "Where it still fails").
 MAX_FRAME_TURN = math.radians(60.0)
 
 

@@ -347,3 +347,19 @@ def test_any_closer_nearest_first_gives_the_pairwise_verdicts(name):
     assert np.array_equal(got, want) and np.array_equal(got, from_pairs)
     assert 50 < got.sum() < len(cand) - 50  # both answers occur
     assert not got[counts == 0].any()
+
+
+def test_parallel_twins_have_their_own_cache_entries_and_the_same_results():
+    # numba's disk cache indexes a function by its qualified name: the parallel twin
+    # must not share the serial one's (it would load the serial code)
+    for kernel in (kernels.shortest_parabolas, kernels.parabola_lengths, kernels.close_candidates):
+        assert kernel.parallel.py_func.__qualname__ != kernel.serial.py_func.__qualname__
+    fld = load_metric(METRICS / "toy.yaml")
+    a = box_points(fld, 3000, 81)
+    b = a + np.random.default_rng(82).normal(scale=0.05, size=a.shape)
+    t, w = geo._gauss(2, 5)
+    grid = np.linspace(-0.5, 0.5, 5)
+    out = [np.empty(len(a)) for _ in range(4)]
+    kernels.shortest_parabolas.serial(fld.kernel.g, a, b, grid, t, w, 2e-3, 60, out[0], out[1])
+    kernels.shortest_parabolas.parallel(fld.kernel.g, a, b, grid, t, w, 2e-3, 60, out[2], out[3])
+    assert np.array_equal(out[0], out[2]) and np.array_equal(out[1], out[3])
