@@ -29,7 +29,7 @@ from curvimesh.sampling import SamplingOptions, sample_points
 from curvimesh.shift import shift_vertices
 from curvimesh.smooth import relocate
 from curvimesh.split import split_long_edges
-from curvimesh.triangulate import delaunay, metric_delaunay
+from curvimesh.triangulate import delaunay, metric_delaunay_of
 
 #: Default bound on the vertex count (SPEC: ``--max-vertices``).
 MAX_VERTICES = 2_000_000
@@ -112,14 +112,14 @@ def triangulate(
     """Stage 2: Delaunay triangulation of the nodes of a point cloud (or of any mesh).
 
     With a metric, the Euclidean Delaunay triangulation is then flipped to
-    the Delaunay triangulation in the metric (:func:`metric_delaunay`) and,
+    the Delaunay triangulation in the metric
+    (:func:`curvimesh.triangulate.metric_delaunay`) and,
     unless ``options.relocate`` is off, its vertices are relocated
     (:func:`curvimesh.smooth.relocate`).
     """
-    mesh = delaunay(np.asarray(points.points), box=points.box)
     if fld is None:
-        return mesh
-    mesh = metric_delaunay(fld, mesh)
+        return delaunay(np.asarray(points.points), box=points.box)
+    mesh = metric_delaunay_of(fld, np.asarray(points.points), points.box)
     opt = options or AdaptOptions()
     if opt.relocate:
         mesh = relocate(fld, mesh, min_dist=opt.sampling.min_dist)

@@ -26,7 +26,7 @@ from curvimesh.freenode import bounded_lengths
 from curvimesh.metric import MetricField
 from curvimesh.sampling import SamplingOptions, accept_candidates
 from curvimesh.spatial import PointIndex
-from curvimesh.triangulate import delaunay, metric_delaunay
+from curvimesh.triangulate import metric_delaunay_of
 
 
 def metric_circumcentres(
@@ -67,7 +67,7 @@ def fill_gaps(
     index.add(pts)
     done_keys = np.zeros(0, dtype=np.int64)  # edges already measured and found short
     for _ in range(max_rounds):
-        mesh = metric_delaunay(field, delaunay(pts, box=field.box))
+        mesh = metric_delaunay_of(field, pts, field.box)
         e = mesh.edges
         n = len(pts)
         keys = e[:, 0] * n + e[:, 1]

@@ -343,6 +343,7 @@ def shortest_parabola(
     order: int = 5,
     exact_length: bool = True,
     remember: bool = True,
+    start: NDArray | None = None,
 ) -> Parabolas:
     """The shortest parabola between each pair of points (paper equation (3)).
 
@@ -356,13 +357,26 @@ def shortest_parabola(
     With ``remember`` the searches are looked up in, and added to, the field's
     memo (:class:`_SearchMemo`); callers whose end points are new every time
     (points that move, shots) pass False.
+
+    ``start`` ``(n,)`` are guesses of α (NaN: none), for pairs whose points
+    moved a little since their last search: the compiled search walks downhill
+    from the guess to a bracket and refines it
+    (:func:`curvimesh.kernels.shortest_parabolas_near`), about three lengths
+    instead of fifteen when α barely changed, and finds the local minimum
+    nearest the guess. Only without ``remember``; the numpy path scans anyway.
     """
     x0 = np.asarray(x0, dtype=float).reshape(-1, 2)
     x1 = np.asarray(x1, dtype=float).reshape(-1, 2)
     nrm = bisector_normal(x0, x1)
     mid0 = 0.5 * (x0 + x1)
     grid = np.linspace(-alpha_max, alpha_max, scan)
-    if not remember:
+    if start is not None:
+        if remember:
+            raise ValueError("shortest_parabola: start needs remember=False")
+        alpha, f_alpha = _search_alpha(
+            field, x0, x1, grid, alpha_tol, segments, order, start=np.asarray(start, dtype=float)
+        )
+    elif not remember:
         alpha, f_alpha = _search_alpha(field, x0, x1, grid, alpha_tol, segments, order)
     else:
         memo = _memo(field, (alpha_max, scan, alpha_tol, segments, order))
@@ -381,15 +395,22 @@ def shortest_parabola(
     return Parabolas(alpha, mid, ln)
 
 
-def _search_alpha(field, x0, x1, grid, alpha_tol, segments, order):
-    """α ``(n,)`` of the shortest parabolas by :func:`shortest_parabola`'s search, and the
-    fixed rule's length there ``(n,)``."""
+def _search_alpha(field, x0, x1, grid, alpha_tol, segments, order, start=None):
+    """α ``(n,)`` of the shortest parabolas by :func:`shortest_parabola`'s search (from
+    the guesses ``start`` when given and compiled), and the fixed rule's length there
+    ``(n,)``."""
     cm = field.kernel
     if cm is not None:
         alpha, f_alpha = np.empty(len(x0)), np.empty(len(x0))
         t, w = _gauss(segments, order)
         a, b = _rows(x0, x1)
-        kernels.shortest_parabolas(cm.g, a, b, grid, t, w, alpha_tol, 60, alpha, f_alpha)
+        if start is None:
+            kernels.shortest_parabolas(cm.g, a, b, grid, t, w, alpha_tol, 60, alpha, f_alpha)
+        else:
+            (s,) = _rows(start)
+            kernels.shortest_parabolas_near(
+                cm.g, a, b, s, grid, t, w, alpha_tol, 60, alpha, f_alpha
+            )
         return alpha, f_alpha
     n, scan = len(x0), len(grid)
     nrm = bisector_normal(x0, x1)

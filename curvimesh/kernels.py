@@ -400,19 +400,9 @@ def _convex_floor(a, b, c, fa, fb, fc):
 def _search(fn, ax, ay, bx, by, grid, t, w, tol, max_iter, decide, short, long):
     """The shortest-parabola search of one row; returns (α, length, verdict).
 
-    A scan of α over ``grid``, then safeguarded parabolic interpolation
-    (Brent 1973) in the bracket around the best scanned value, golden-section
-    steps when the vertex is unusable or every third iteration, until the
-    bracket is at most ``tol`` wide; the length is the best value seen.
-
-    With ``decide``, the search stops as soon as the verdict is known, the
-    length being assumed convex in α on the bracket (Brent's own model): −1
-    once a length below ``short`` is seen, +1 once the bracket's convex floor
-    (:func:`_convex_floor`) is above ``long``, 0 once a length at most ``long``
-    is seen and the floor is at least ``short``. Otherwise the verdict is
-    that of the final length.
+    A scan of α over ``grid``, then :func:`_brent` in the bracket around the
+    best scanned value.
     """
-    cgold = 0.3819660112501051
     scan = grid.shape[0]
     vals = np.empty(scan)
     best = 0
@@ -422,8 +412,29 @@ def _search(fn, ax, ay, bx, by, grid, t, w, tol, max_iter, decide, short, long):
             best = j
     ia = max(best - 1, 0)
     ic = min(best + 1, scan - 1)
-    a, b, c = grid[ia], grid[best], grid[ic]
-    fa, fb, fc = vals[ia], vals[best], vals[ic]
+    return _brent(
+        fn, ax, ay, bx, by, grid[ia], grid[best], grid[ic], vals[ia], vals[best], vals[ic],
+        t, w, tol, max_iter, decide, short, long,
+    )  # fmt: skip
+
+
+@njit(**_JIT)
+def _brent(fn, ax, ay, bx, by, a, b, c, fa, fb, fc, t, w, tol, max_iter, decide, short, long):
+    """Brent's minimisation of the parabola length in α from the bracket a ≤ b ≤ c
+    (fb ≤ fa, fc); returns (α, length, verdict).
+
+    Safeguarded parabolic interpolation (Brent 1973), golden-section steps
+    when the vertex is unusable or every third iteration, until the bracket
+    is at most ``tol`` wide; the length is the best value seen.
+
+    With ``decide``, the search stops as soon as the verdict is known, the
+    length being assumed convex in α on the bracket (Brent's own model): −1
+    once a length below ``short`` is seen, +1 once the bracket's convex floor
+    (:func:`_convex_floor`) is above ``long``, 0 once a length at most ``long``
+    is seen and the floor is at least ``short``. Otherwise the verdict is
+    that of the final length.
+    """
+    cgold = 0.3819660112501051
     for it in range(max_iter):
         if decide:
             if fb < short:
@@ -465,6 +476,60 @@ def _search(fn, ax, ay, bx, by, grid, t, w, tol, max_iter, decide, short, long):
     return b, fb, verdict
 
 
+@njit(**_JIT)
+def _scanned(fn, ax, ay, bx, by, grid, t, w, tol, max_iter):
+    """(α, length) of :func:`_search` without a verdict."""
+    a, f, _ = _search(fn, ax, ay, bx, by, grid, t, w, tol, max_iter, False, -math.inf, math.inf)
+    return a, f
+
+
+@njit(**_JIT)
+def _search_near(fn, ax, ay, bx, by, start, grid, t, w, tol, max_iter):
+    """The shortest-parabola search of one row from a guess ``start`` of α; returns
+    (α, length).
+
+    Downhill from ``start`` in steps of 0.45 ``tol`` doubling at each step
+    until the length rises (a bracket, Press et al. 2007, section 10.1), then
+    :func:`_brent`; the scan of :func:`_search` instead when ``start`` is NaN
+    or the walk leaves the scanned range [grid₀, grid₋₁]. It finds the local
+    minimum nearest the guess, not necessarily the scan's.
+    """
+    if not math.isfinite(start) or start < grid[0] or start > grid[-1]:
+        return _scanned(fn, ax, ay, bx, by, grid, t, w, tol, max_iter)
+    h = 0.45 * tol
+    b, fb = start, _offset_length(fn, ax, ay, bx, by, start, t, w)
+    c, fc = b + h, _offset_length(fn, ax, ay, bx, by, b + h, t, w)
+    if fc < fb:  # downhill towards +α
+        a, fa = b, fb
+        b, fb = c, fc
+        step = 2.0 * h
+        c = b + step
+        fc = _offset_length(fn, ax, ay, bx, by, c, t, w)
+        while fc < fb:
+            if c > grid[-1]:
+                return _scanned(fn, ax, ay, bx, by, grid, t, w, tol, max_iter)
+            a, fa, b, fb = b, fb, c, fc
+            step *= 2.0
+            c = b + step
+            fc = _offset_length(fn, ax, ay, bx, by, c, t, w)
+    else:
+        a, fa = b - h, _offset_length(fn, ax, ay, bx, by, b - h, t, w)
+        step = h
+        while fa < fb:  # downhill towards −α
+            if a < grid[0]:
+                return _scanned(fn, ax, ay, bx, by, grid, t, w, tol, max_iter)
+            c, fc, b, fb = b, fb, a, fa
+            step *= 2.0
+            a = b - step
+            fa = _offset_length(fn, ax, ay, bx, by, a, t, w)
+    if not (math.isfinite(fa) and math.isfinite(fb) and math.isfinite(fc)):
+        return _scanned(fn, ax, ay, bx, by, grid, t, w, tol, max_iter)
+    a, f, _ = _brent(
+        fn, ax, ay, bx, by, a, b, c, fa, fb, fc, t, w, tol, max_iter, False, -math.inf, math.inf
+    )
+    return a, f
+
+
 @_row_kernel
 def shortest_parabolas(fn, x0, x1, grid, t, w, tol, max_iter, alpha, length):
     """The search of :func:`curvimesh.geodesic.shortest_parabola`, one row at a time
@@ -474,6 +539,16 @@ def shortest_parabolas(fn, x0, x1, grid, t, w, tol, max_iter, alpha, length):
             fn, x0[i, 0], x0[i, 1], x1[i, 0], x1[i, 1], grid, t, w, tol, max_iter, False,
             -math.inf, math.inf,
         )  # fmt: skip
+
+
+@_row_kernel
+def shortest_parabolas_near(fn, x0, x1, start, grid, t, w, tol, max_iter, alpha, length):
+    """The search of :func:`curvimesh.geodesic.shortest_parabola` from guesses ``start``
+    of α (NaN: none), one row at a time (:func:`_search_near`)."""
+    for i in prange(x0.shape[0]):
+        alpha[i], length[i] = _search_near(
+            fn, x0[i, 0], x0[i, 1], x1[i, 0], x1[i, 1], start[i], grid, t, w, tol, max_iter
+        )
 
 
 @_row_kernel

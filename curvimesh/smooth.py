@@ -37,9 +37,12 @@ def _on_box(points: NDArray, box: tuple[float, float, float, float]) -> NDArray:
     )
 
 
-def edge_parabola_lengths(field: MetricField, points: NDArray, edges: NDArray) -> NDArray:
-    """Lengths ``(E,)`` of the shortest parabolas of edges ``(E, 2)`` (search accuracy)."""
-    return shortest_parabola(
+def edge_parabola_lengths(
+    field: MetricField, points: NDArray, edges: NDArray, start: NDArray | None = None
+) -> tuple[NDArray, NDArray]:
+    """Lengths ``(E,)`` of the shortest parabolas of edges ``(E, 2)`` (search accuracy)
+    and their α ``(E,)``, searched from the guesses ``start`` ``(E,)`` of α if given."""
+    par = shortest_parabola(
         field,
         points[edges[:, 0]],
         points[edges[:, 1]],
@@ -47,7 +50,18 @@ def edge_parabola_lengths(field: MetricField, points: NDArray, edges: NDArray) -
         alpha_tol=2e-3,
         exact_length=False,
         remember=False,  # the vertices move at every sweep
-    ).length
+        start=start,
+    )
+    return par.length, par.alpha
+
+
+def carried_alpha(old_edges: NDArray, old_alpha: NDArray, edges: NDArray, n: int) -> NDArray:
+    """α ``(E,)`` of ``edges`` ``(E, 2)`` from the same edges in ``old_edges`` ``(E', 2)``
+    (both sorted, as :attr:`Mesh.edges`, ``n`` points), NaN for the new ones."""
+    old_keys = old_edges[:, 0] * n + old_edges[:, 1]
+    keys = edges[:, 0] * n + edges[:, 1]
+    pos = np.minimum(np.searchsorted(old_keys, keys), len(old_keys) - 1)
+    return np.where(old_keys[pos] == keys, old_alpha[pos], np.nan)
 
 
 def _undo_bad_moves(
@@ -142,9 +156,14 @@ def relocate(
     fixed = _on_box(pts, field.box)
     n = len(pts)
     cur = mesh
+    old_edges = alpha = None
     for _ in range(sweeps):
         e = cur.edges
-        length = edge_parabola_lengths(field, pts, e)
+        # the vertices move little between sweeps: each edge's search starts from its
+        # last α (the edges a flip made are searched from scratch)
+        start = None if alpha is None else carried_alpha(old_edges, alpha, e, n)
+        length, alpha = edge_parabola_lengths(field, pts, e, start)
+        old_edges = e
         i = np.concatenate([e[:, 0], e[:, 1]])
         j = np.concatenate([e[:, 1], e[:, 0]])
         ln = np.concatenate([length, length])

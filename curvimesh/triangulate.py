@@ -9,6 +9,8 @@ segment between consecutive boundary vertices being a hull edge.
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import Delaunay, QhullError
@@ -125,3 +127,32 @@ def _metric_delaunay_compiled(field, cm, mesh: Mesh, max_rounds: int) -> Mesh:
     if kernels.metric_delaunay_flips(cm.g, pts, corners, nbr, nbr_k, max_rounds, bad) < 0:
         field.tensor(bad[None])  # raises MetricError naming the point
     return Mesh(pts, corners, mesh.box)
+
+
+#: The last :func:`metric_delaunay_of` result of each field: (points, box, mesh).
+_LAST: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def metric_delaunay_of(
+    field, points: NDArray, box: tuple[float, float, float, float] | None = None
+) -> Mesh:
+    """``metric_delaunay(field, delaunay(points, box=box))``, remembered for the last
+    point set of each field.
+
+    Gap filling (:func:`curvimesh.fill.fill_gaps`) ends on the triangulation of
+    its final points, which the triangulation stage asks for again: the second
+    call returns the same mesh (both are pure functions of the points) without
+    a second Qhull run and Lawson flips.
+    """
+    pts = np.asarray(points, dtype=float)
+    last = _LAST.get(field)
+    if (
+        last is not None
+        and last[1] == box
+        and last[0].shape == pts.shape
+        and np.array_equal(last[0], pts)
+    ):
+        return last[2]
+    mesh = metric_delaunay(field, delaunay(pts, box=box))
+    _LAST[field] = (pts.copy(), box, mesh)
+    return mesh

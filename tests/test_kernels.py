@@ -363,3 +363,49 @@ def test_parallel_twins_have_their_own_cache_entries_and_the_same_results():
     kernels.shortest_parabolas.serial(fld.kernel.g, a, b, grid, t, w, 2e-3, 60, out[0], out[1])
     kernels.shortest_parabolas.parallel(fld.kernel.g, a, b, grid, t, w, 2e-3, 60, out[2], out[3])
     assert np.array_equal(out[0], out[2]) and np.array_equal(out[1], out[3])
+
+
+TOL = 2e-3  # the relocation's search tolerance
+
+
+def test_search_from_a_guess_finds_the_scans_minimum_nearby():
+    fld = load_metric(METRICS / "toy.yaml")
+    a = box_points(fld, 3000, 61)
+    b = a + np.random.default_rng(62).normal(scale=0.03, size=a.shape)
+    kw = dict(scan=5, alpha_tol=TOL, exact_length=False, remember=False)
+    ref = geo.shortest_parabola(fld, a, b, **kw)
+    guess = ref.alpha + np.random.default_rng(63).uniform(-0.05, 0.05, len(a))
+    got = geo.shortest_parabola(fld, a, b, start=guess, **kw)
+    assert np.all(np.isfinite(got.length))
+    near = np.abs(got.alpha - ref.alpha) <= 2 * TOL
+    # the odd pair across a curved layer has another local minimum within 0.05
+    assert near.mean() >= 0.99
+    rel = (got.length - ref.length) / ref.length
+    assert np.all(np.abs(rel[near]) <= 3e-5)
+    # no guess (NaN), or one outside the scanned range: the scan itself
+    none = geo.shortest_parabola(fld, a, b, start=np.full(len(a), np.nan), **kw)
+    outside = geo.shortest_parabola(fld, a, b, start=np.full(len(a), 0.7), **kw)
+    assert np.array_equal(none.alpha, ref.alpha) and np.array_equal(none.length, ref.length)
+    assert np.array_equal(outside.alpha, ref.alpha)
+
+
+def test_search_from_any_guess_in_a_constant_metric_ends_on_the_segment():
+    fld = load_metric_text("domain: {box: [[0, 0], [1, 1]]}\nmetric: {tensor: [400, 120, 100]}\n")
+    rng = np.random.default_rng(71)
+    a = rng.uniform(0.2, 0.8, (500, 2))
+    b = a + rng.normal(scale=0.05, size=a.shape)
+    guess = rng.uniform(-0.45, 0.45, len(a))
+    got = geo.shortest_parabola(
+        fld, a, b, scan=5, alpha_tol=TOL, exact_length=False, remember=False, start=guess
+    )
+    d = b - a
+    exact = np.sqrt(400 * d[:, 0] ** 2 + 240 * d[:, 0] * d[:, 1] + 100 * d[:, 1] ** 2)
+    assert np.all(np.abs(got.alpha) <= TOL)
+    # a parabola offset by α|b − a| is longer by the factor 1 + (8/3)α² (to first order)
+    assert np.all(np.abs(got.length / exact - 1) <= 3 * TOL**2)
+
+
+def test_a_guess_is_refused_with_the_memo():
+    fld = load_metric(METRICS / "toy.yaml")
+    with pytest.raises(ValueError, match="remember"):
+        geo.shortest_parabola(fld, [[0.1, 0.1]], [[0.2, 0.2]], start=np.zeros(1))

@@ -237,7 +237,7 @@ def test_relocation_undo_matches_full_remeasuring():
     new = pts.copy()
     # random moves: some invert triangles or shorten edges, undoing takes several passes
     new[moved] += np.random.default_rng(5).normal(scale=0.03, size=(len(moved), 2))
-    before = edge_parabola_lengths(fld, pts, e)
+    before, _ = edge_parabola_lengths(fld, pts, e)
     # the random moves make many edges longer than 1.5: the long-edge rule undoes moves too
     max_length = 1.5
     got = _undo_bad_moves(fld, pts, new, moved, e, tris, 0.7, before, max_length)
@@ -249,7 +249,7 @@ def test_relocation_undo_matches_full_remeasuring():
         touch = np.isin(e, moved).any(axis=1)
         short = np.zeros(len(e), dtype=bool)
         if touch.any():
-            length = edge_parabola_lengths(fld, ref, e[touch])
+            length, _ = edge_parabola_lengths(fld, ref, e[touch])
             long = length > np.maximum(max_length, before[touch])
             long_undone |= bool(long.any())
             short[touch] = (length < 0.7) | long
@@ -353,3 +353,19 @@ def test_a_side_node_is_kept_where_its_triangle_can_be_valid():
     side = p2.edge_mid[np.flatnonzero((p2.edges == [0, 1]).all(axis=1))[0]]
     np.testing.assert_array_equal(p2.points[side], [SIDE_NODE_RANGE[1], 0.0])
     assert valid_exact(np.asarray(p2.points)[p2.triangles]).all()
+
+
+def test_the_triangulation_of_the_filled_points_is_reused_and_is_a_fresh_ones():
+    from curvimesh.triangulate import delaunay, metric_delaunay, metric_delaunay_of
+
+    fld = load_metric_text(CONSTANT)
+    pts = np.array(pipeline.sample(fld).points)  # gap filling ended on this triangulation
+    first = metric_delaunay_of(fld, pts, fld.box)
+    assert metric_delaunay_of(fld, pts.copy(), fld.box) is first
+    fresh = metric_delaunay(fld, delaunay(pts, box=fld.box))
+    assert np.array_equal(first.triangles, fresh.triangles)
+    # a moved point: triangulated again
+    moved = pts.copy()
+    moved[-1] += 1e-3
+    other = metric_delaunay_of(fld, moved, fld.box)
+    assert other is not first and np.array_equal(other.points, moved)
