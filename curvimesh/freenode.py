@@ -308,9 +308,34 @@ def any_closer(
     return close
 
 
+def any_closer_in_index(
+    field: MetricField,
+    a: NDArray,
+    mins: NDArray,
+    maxs: NDArray,
+    index,
+    exclude: NDArray,
+    short: float,
+    *,
+    straight_order: int = 5,
+) -> NDArray[np.bool_]:
+    """:func:`curvimesh.geodesic.any_closer_in_index` (same arguments); where the frame
+    may turn fast, the pairs are listed and decided by :func:`any_closer`."""
+    if not may_turn_fast(field):
+        return geodesic.any_closer_in_index(
+            field, a, mins, maxs, index, exclude, short, straight_order=straight_order
+        )
+    q, hit = index.query(mins, maxs)
+    other = hit != exclude[q]
+    q, hit = q[other], hit[other]
+    offsets = np.searchsorted(q, np.arange(len(a) + 1))  # q is sorted
+    return any_closer(field, a, index.points, offsets, hit, short, straight_order=straight_order)
+
+
 __all__ = [
     "FREE_NODE_TURN",
     "any_closer",
+    "any_closer_in_index",
     "bounded_lengths",
     "edges_turning_fast",
     "free_node",

@@ -742,6 +742,47 @@ def any_closer(
     return out
 
 
+def any_closer_in_index(
+    field: MetricField,
+    a: NDArray,
+    mins: NDArray,
+    maxs: NDArray,
+    index,
+    exclude: NDArray,
+    short: float,
+    *,
+    straight_order: int = 5,
+) -> NDArray[np.bool_]:
+    """:func:`any_closer` of each point ``a[i]`` ``(k, 2)`` against the points of ``index``
+    (a :class:`curvimesh.spatial.PointIndex`) in its box ``[mins[i], maxs[i]]``, but
+    the point ``exclude[i]`` (−1: none), ``(k,)``.
+
+    Where the field is compiled, the box queries and the verdicts are one pass
+    (:func:`curvimesh.kernels.close_in_index`): no table of pairs is built.
+    """
+    cm = field.kernel
+    if cm is None or index.packed() is None or len(a) == 0:
+        q, hit = index.query(mins, maxs)
+        other = hit != exclude[q]
+        q, hit = q[other], hit[other]
+        offsets = np.searchsorted(q, np.arange(len(a) + 1))  # q is sorted
+        return any_closer(
+            field, a, index.points, offsets, hit, short, straight_order=straight_order
+        )
+    a, mins, maxs = _rows(a, mins, maxs)
+    ga = field.tensor(a, check=False)
+    out = np.zeros(len(a), dtype=np.bool_)
+    ts, ws = _gauss(2, straight_order)
+    t, w = _gauss(2, 5)
+    kernels.close_in_index(
+        cm.g, a, np.ascontiguousarray(ga[:, [0, 0, 1], [0, 1, 1]]), mins, maxs,
+        np.ascontiguousarray(exclude, dtype=np.int64), *index.packed(), *_rows(index.points),
+        float(short), LOWER_BOUND_MARGIN, _PROBES, ts, ws, np.linspace(-0.5, 0.5, BOUNDED_SCAN),
+        t, w, BOUNDED_TOL, out,
+    )  # fmt: skip
+    return out
+
+
 def _bounds(field, a, b, short, long, straight_order):
     """The bound stage of :func:`bounded_lengths`: lengths (bounds) ``(p,)``, chord
     midpoints ``(p, 2)`` and the rows whose parabola must be searched."""

@@ -608,6 +608,27 @@ def _is_close(fn, ax, ay, bx, by, short, margin, probes, ts, ws, grid, t, w, tol
     return _search(fn, ax, ay, bx, by, grid, t, w, tol, 60, True, short, math.inf)[2] < 0
 
 
+@njit(**_JIT)
+def _nearest_close(
+    fn, cx, cy, g11, g12, g22, pts, nbr, short, margin, probes, ts, ws, grid, t, w, tol
+):
+    """Whether one of the points ``pts[nbr]`` is closer than ``short`` to (cx, cy)
+    (:func:`_is_close`), trying them nearest first by the length of the chord in
+    the metric (g11, g12, g22) at (cx, cy) and stopping at the first close one."""
+    key = np.empty(nbr.shape[0])
+    for k in range(nbr.shape[0]):
+        dx = pts[nbr[k], 0] - cx
+        dy = pts[nbr[k], 1] - cy
+        key[k] = g11 * dx * dx + 2.0 * g12 * dx * dy + g22 * dy * dy
+    for k in np.argsort(key, kind="mergesort"):
+        p = nbr[k]
+        if _is_close(
+            fn, cx, cy, pts[p, 0], pts[p, 1], short, margin, probes, ts, ws, grid, t, w, tol
+        ):
+            return True
+    return False
+
+
 @_row_kernel
 def close_candidates(
     fn, cand, g_cand, pts, offsets, hits, short, margin, probes, ts, ws, grid, t, w, tol, out
@@ -618,28 +639,15 @@ def close_candidates(
 
     The neighbours are tried nearest first, by the length of the chord in the
     candidate's metric ``g_cand[i]`` (g11, g12, g22), and the first close one
-    decides: the verdict of every pair being fixed, the order changes only
-    how many are tried (a rejected candidate usually has a close neighbour
-    among its nearest).
+    decides (:func:`_nearest_close`): the verdict of every pair being fixed, the
+    order changes only how many are tried (a rejected candidate usually has a
+    close neighbour among its nearest).
     """
     for i in prange(cand.shape[0]):
-        lo, hi = offsets[i], offsets[i + 1]
-        cx, cy = cand[i, 0], cand[i, 1]
-        g11, g12, g22 = g_cand[i, 0], g_cand[i, 1], g_cand[i, 2]
-        key = np.empty(hi - lo)
-        for k in range(lo, hi):
-            dx = pts[hits[k], 0] - cx
-            dy = pts[hits[k], 1] - cy
-            key[k - lo] = g11 * dx * dx + 2.0 * g12 * dx * dy + g22 * dy * dy
-        close = False
-        for k in np.argsort(key, kind="mergesort"):
-            p = hits[lo + k]
-            if _is_close(
-                fn, cx, cy, pts[p, 0], pts[p, 1], short, margin, probes, ts, ws, grid, t, w, tol
-            ):
-                close = True
-                break
-        out[i] = close
+        out[i] = _nearest_close(
+            fn, cand[i, 0], cand[i, 1], g_cand[i, 0], g_cand[i, 1], g_cand[i, 2], pts,
+            hits[offsets[i] : offsets[i + 1]], short, margin, probes, ts, ws, grid, t, w, tol,
+        )  # fmt: skip
 
 
 # --------------------------------------------------------------------------- #
@@ -964,8 +972,8 @@ def metric_delaunay_flips(fn, pts, corners, nbr, nbr_k, max_rounds, bad):
 
 @njit(**_JIT)
 def _rtree_visit(boxes, first, count, leaf, ids, xy, roots, lo_x, lo_y, hi_x, hi_y, out, n_out):
-    """Ids of the points in [lo, hi] (closed) over the trees of ``roots``; writes them to
-    ``out`` from 0 when ``n_out`` > 0 (else only counts) and returns their number.
+    """Ids of the points in [lo, hi] (closed) over the trees of ``roots``; writes the first
+    ``n_out`` of them to ``out`` from 0 and returns their number.
 
     ``xy`` holds the points' coordinates in the order of ``ids`` (leaf by leaf), so
     that a leaf's points are read from consecutive memory; a leaf whose box lies
@@ -992,7 +1000,7 @@ def _rtree_visit(boxes, first, count, leaf, ids, xy, roots, lo_x, lo_y, hi_x, hi
                 )
                 for k in range(start, start + count[node]):
                     if whole or (lo_x <= xy[k, 0] <= hi_x and lo_y <= xy[k, 1] <= hi_y):
-                        if n_out > 0:
+                        if found < n_out:
                             out[found] = ids[k]
                         found += 1
             else:
@@ -1032,6 +1040,35 @@ def rtree_fill(mins, maxs, boxes, first, count, leaf, ids, xy, roots, offsets, h
             mins[q, 0], mins[q, 1], maxs[q, 0], maxs[q, 1], seg, offsets[q + 1] - offsets[q],
         )  # fmt: skip
         seg[:n].sort()
+
+
+@_row_kernel
+def close_in_index(
+    fn, cand, g_cand, mins, maxs, exclude, boxes, first, count, leaf, ids, xy, roots, pts,
+    short, margin, probes, ts, ws, grid, t, w, tol, out,
+):  # fmt: skip
+    """:func:`close_candidates` with each candidate's neighbours found on the fly: the
+    indexed points (:func:`rtree_fill`'s arguments) in its box ``[mins[i], maxs[i]]``,
+    but the point ``exclude[i]`` (−1: none), in ascending id order as there. One pass
+    over the trees per candidate, and no table of pairs."""
+    for i in prange(cand.shape[0]):
+        x0, y0, x1, y1 = mins[i, 0], mins[i, 1], maxs[i, 0], maxs[i, 1]
+        buf = np.empty(64, dtype=np.int64)
+        m = _rtree_visit(boxes, first, count, leaf, ids, xy, roots, x0, y0, x1, y1, buf, 64)
+        if m > 64:
+            buf = np.empty(m, dtype=np.int64)
+            _rtree_visit(boxes, first, count, leaf, ids, xy, roots, x0, y0, x1, y1, buf, m)
+        nbr = buf[:m]
+        nbr.sort()
+        kept = 0
+        for k in range(m):
+            if nbr[k] != exclude[i]:
+                nbr[kept] = nbr[k]
+                kept += 1
+        out[i] = _nearest_close(
+            fn, cand[i, 0], cand[i, 1], g_cand[i, 0], g_cand[i, 1], g_cand[i, 2], pts,
+            nbr[:kept], short, margin, probes, ts, ws, grid, t, w, tol,
+        )  # fmt: skip
 
 
 # --------------------------------------------------------------------------- #

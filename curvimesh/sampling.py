@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from curvimesh.boundary import BoundaryMesh
-from curvimesh.freenode import any_closer, parabola_verdicts, shortest_parabola
+from curvimesh.freenode import any_closer_in_index, parabola_verdicts, shortest_parabola
 from curvimesh.geodesic import PAIR_BLOCK, parabola_length_rule, shoot, unit_velocity
 from curvimesh.metric import MetricField, smallest_eigenvalue
 from curvimesh.spatial import PointIndex, pairs_within_boxes
@@ -147,12 +147,11 @@ def close_to_index(
     half-widths ``radius`` ``(k, 2)``, ignoring the index point ``exclude[i]`` (``(k,)``,
     −1 for none), ``(k,)``: nearest neighbours first (:func:`curvimesh.geodesic.any_closer`).
     """
-    q, hit = index.query(x - radius, x + radius)
-    if exclude is not None:
-        other = hit != exclude[q]
-        q, hit = q[other], hit[other]
-    offsets = np.searchsorted(q, np.arange(len(x) + 1))  # q is sorted
-    return any_closer(field, x, index.points, offsets, hit, min_dist, straight_order=4)
+    if exclude is None:
+        exclude = np.full(len(x), -1, dtype=np.int64)
+    return any_closer_in_index(
+        field, x, x - radius, x + radius, index, exclude, min_dist, straight_order=4
+    )
 
 
 def _boundary_distance(field: MetricField, pts: NDArray) -> NDArray:

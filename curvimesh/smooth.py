@@ -105,10 +105,10 @@ def _undo_bad_moves(
         if undo.size == 0:
             break
         new[undo] = old[undo]
-        moved = np.setdiff1d(moved, undo)
-        is_moved[undo] = False
         undone = np.zeros(n, dtype=bool)
         undone[undo] = True
+        moved = moved[~undone[moved]]  # ascending, as np.setdiff1d would give
+        is_moved[undo] = False
         at = np.flatnonzero(undone[tris].any(axis=1))
         bad_t[at] = signed_areas(new, tris[at]) <= 0
         at = np.flatnonzero(undone[edges].any(axis=1))

@@ -76,13 +76,10 @@ class PackedTree:
         self.root = len(self.boxes) - 1
 
 
-def _query(trees: list[PackedTree], mins: NDArray, maxs: NDArray):
-    """Pairs (query index, point id) of the points of ``trees`` in each box, sorted."""
-    mins = np.ascontiguousarray(mins, dtype=np.float64).reshape(-1, 2)
-    maxs = np.ascontiguousarray(maxs, dtype=np.float64).reshape(-1, 2)
-    if not trees or len(mins) == 0:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    # the trees side by side: node indices shifted, ids positions shifted
+def packed_arrays(trees: list[PackedTree]) -> tuple[NDArray, ...]:
+    """The trees side by side, as the compiled queries take them: node boxes, first
+    children, child counts, leaf flags, ids, coordinates, roots (node indices and
+    positions in ``ids`` shifted tree by tree)."""
     node_base = np.cumsum([0] + [len(t.boxes) for t in trees[:-1]])
     id_base = np.cumsum([0] + [len(t.ids) for t in trees[:-1]])
     boxes = np.concatenate([t.boxes for t in trees])
@@ -97,8 +94,17 @@ def _query(trees: list[PackedTree], mins: NDArray, maxs: NDArray):
     ids = np.concatenate([t.ids for t in trees])
     xy = np.concatenate([t.xy for t in trees])
     roots = np.array([t.root + nb for t, nb in zip(trees, node_base, strict=True)], dtype=np.int64)
+    return boxes, first, count, leaf, ids, xy, roots
+
+
+def _query(args: tuple[NDArray, ...] | None, mins: NDArray, maxs: NDArray):
+    """Pairs (query index, point id) of the points of the packed trees ``args``
+    (:func:`packed_arrays`, None for none) in each box, sorted."""
+    mins = np.ascontiguousarray(mins, dtype=np.float64).reshape(-1, 2)
+    maxs = np.ascontiguousarray(maxs, dtype=np.float64).reshape(-1, 2)
+    if args is None or len(mins) == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     counts = np.empty(len(mins), dtype=np.int64)
-    args = (boxes, first, count, leaf, ids, xy, roots)
     kernels.rtree_count(mins, maxs, *args, counts)
     offsets = np.zeros(len(mins) + 1, dtype=np.int64)
     np.cumsum(counts, out=offsets[1:])
@@ -120,6 +126,7 @@ class PointIndex:
     def __init__(self) -> None:
         self._trees: list[PackedTree] = []
         self._chunks: list[NDArray] = []
+        self._packed: tuple[NDArray, ...] | None = None
         self.size = 0
 
     def add(self, pts: NDArray) -> None:
@@ -134,6 +141,13 @@ class PointIndex:
             ids = np.concatenate([self._trees.pop().ids, ids])
         ids = np.sort(ids)
         self._trees.append(PackedTree(ids, self.points[ids]))
+        self._packed = None
+
+    def packed(self) -> tuple[NDArray, ...] | None:
+        """The trees as :func:`packed_arrays` (None while empty), kept until the next add."""
+        if self._packed is None and self._trees:
+            self._packed = packed_arrays(self._trees)
+        return self._packed
 
     @property
     def points(self) -> NDArray:
@@ -148,7 +162,7 @@ class PointIndex:
 
         Boxes are ``mins``, ``maxs`` ``(q, 2)``.
         """
-        return _query(self._trees, mins, maxs)
+        return _query(self.packed(), mins, maxs)
 
 
 def pairs_within_boxes(pts: NDArray, radius: NDArray) -> tuple[NDArray, NDArray]:
@@ -163,7 +177,8 @@ def pairs_within_boxes(pts: NDArray, radius: NDArray) -> tuple[NDArray, NDArray]
     pts = np.asarray(pts, dtype=float)
     r = np.asarray(radius, dtype=float)
     r = r[:, None] if r.ndim == 1 else r
-    a, b = _query([PackedTree(np.arange(n), pts)], pts - r, pts + r)
+    a, b = _query(packed_arrays([PackedTree(np.arange(n), pts)]), pts - r, pts + r)
     keep = a != b
-    pair = np.unique(np.column_stack([np.minimum(a, b), np.maximum(a, b)])[keep], axis=0)
-    return pair[:, 0], pair[:, 1]
+    # one int64 key per pair keeps the lexicographic order of (i, j)
+    key = np.unique((np.minimum(a, b) * n + np.maximum(a, b))[keep])
+    return key // n, key % n

@@ -349,6 +349,40 @@ def test_any_closer_nearest_first_gives_the_pairwise_verdicts(name):
     assert not got[counts == 0].any()
 
 
+@pytest.mark.parametrize("name", ["toy", "front"])
+def test_closeness_in_an_index_is_the_pairwise_verdict_over_its_boxes(name):
+    from curvimesh.spatial import PointIndex
+
+    fast, ref = both(load_metric(METRICS / f"{name}.yaml"))
+    index = PointIndex()
+    for seed in (81, 82, 83):  # three batches: several packed trees
+        index.add(box_points(fast, 600, seed))
+    pts = index.points
+    cand = box_points(fast, 1200, 84)
+    rng = np.random.default_rng(85)
+    # boxes from tiny to wide (hundreds of points: past the kernel's first buffer)
+    xmin, ymin, xmax, ymax = fast.box
+    half = rng.uniform(0.001, 0.15, (len(cand), 2)) * [xmax - xmin, ymax - ymin]
+    exclude = np.where(rng.random(len(cand)) < 0.3, rng.integers(0, len(pts), len(cand)), -1)
+    # candidates on points of the index, excluding them: only the others decide
+    exclude[:50] = rng.choice(len(pts), 50, replace=False)
+    cand[:50] = pts[exclude[:50]]
+    mins, maxs = cand - half, cand + half
+    got = geo.any_closer_in_index(fast, cand, mins, maxs, index, exclude, 0.7, straight_order=4)
+    want = geo.any_closer_in_index(ref, cand, mins, maxs, index, exclude, 0.7, straight_order=4)
+    # the truth: every point in the box but the excluded one, pair by pair
+    inside = np.all((pts[None] >= mins[:, None]) & (pts[None] <= maxs[:, None]), axis=2)
+    inside[np.arange(len(cand)), exclude] &= exclude < 0
+    q, h = np.nonzero(inside)
+    pairwise = geo.parabola_verdicts(fast, cand[q], pts[h], short=0.7, straight_order=4) < 0
+    truth = np.zeros(len(cand), dtype=bool)
+    truth[q[pairwise]] = True
+    assert inside.sum(axis=1).max() > 64
+    assert np.array_equal(got, truth) and np.array_equal(want, truth)
+    assert 50 < got.sum() < len(cand) - 50
+    assert not truth[:50].all()  # the exclusions matter
+
+
 def test_parallel_twins_have_their_own_cache_entries_and_the_same_results():
     # numba's disk cache indexes a function by its qualified name: the parallel twin
     # must not share the serial one's (it would load the serial code)
