@@ -22,6 +22,10 @@ form); results agree to rounding (the tests compare them). Floating-point
 semantics are numpy's (``error_model="numpy"``: x/0 is ±inf or NaN, no exception),
 not fast-math, so NaN marks undefined metric values as in the numpy code.
 
+The mesh's edge table (:func:`edge_table`, :func:`edge_triangles`) is integer
+work: a counting sort and linear passes, O(m + n) for m triangles on n nodes,
+where :class:`curvimesh.mesh.Mesh` sorted with numpy; the arrays are the same.
+
 This module is the only user of numba (STYLE: each third-party edge in one module).
 """
 
@@ -820,6 +824,120 @@ def element_l2_squared(fn, nodes, shape, du, dv, w, out):
             err = fn(px, py) - interp
             acc += err * err * abs(xu * yv - xv * yu) * w[k]
         out[i] = acc
+
+
+# --------------------------------------------------------------------------- #
+# The edge table of a triangle mesh                                            #
+# --------------------------------------------------------------------------- #
+
+#: Sides sharing a lower end up to this many are sorted by insertion; more (a node
+#: of very high degree, as the centre of a fan) by :func:`_merge_sort_rows`, so that
+#: no mesh costs quadratic time.
+INSERTION_SORT_MAX = 32
+
+
+@njit(**_JIT)
+def _merge_sort_rows(rows, b0, b1):
+    """Rows b0 to b1 − 1 of ``rows`` ``(k, 2)`` sorted in place by column 0, stably
+    (bottom-up merge sort, O(r log r) for r rows)."""
+    size = b1 - b0
+    src = np.empty((size, 2), dtype=rows.dtype)
+    dst = np.empty((size, 2), dtype=rows.dtype)
+    for i in range(size):
+        src[i, 0], src[i, 1] = rows[b0 + i, 0], rows[b0 + i, 1]
+    width = 1
+    while width < size:
+        for left in range(0, size, 2 * width):
+            mid = min(left + width, size)
+            right = min(left + 2 * width, size)
+            i, j = left, mid
+            for k in range(left, right):
+                if j >= right or (i < mid and src[i, 0] <= src[j, 0]):
+                    dst[k, 0], dst[k, 1] = src[i, 0], src[i, 1]
+                    i += 1
+                else:
+                    dst[k, 0], dst[k, 1] = src[j, 0], src[j, 1]
+                    j += 1
+        src, dst = dst, src
+        width *= 2
+    for i in range(size):
+        rows[b0 + i, 0], rows[b0 + i, 1] = src[i, 0], src[i, 1]
+
+
+@njit(**_JIT)
+def edge_table(triangles, n):
+    """The unique edges of the triangles and the edge of each triangle side, as
+    ``np.unique(lo * n + hi, return_inverse=True)`` would give them.
+
+    ``triangles`` ``(m, ≥3)`` holds node ids in [0, n) in its first three columns
+    (the corners); side k of triangle t joins corners k and (k + 1) % 3, and
+    (lo, hi) are its ends sorted (lo = hi where a triangle repeats a corner).
+    Returns ``edges`` ``(E, 2)``, the distinct pairs (lo, hi) in lexicographic
+    order, and ``tri_edges`` ``(m, 3)``, the index in ``edges`` of side k of t.
+
+    The 3m sides are sorted by a counting sort on lo (O(m + n)), then each run
+    of one lo (a handful of sides) by insertion on hi (runs longer than
+    :data:`INSERTION_SORT_MAX`: a merge sort), then numbered, a new edge wherever
+    (lo, hi) changes. Both sorts are stable: sides of one edge stay in the order t, k.
+    """
+    m = triangles.shape[0]
+    start = np.zeros(n + 1, dtype=np.int64)  # start[lo]: first slot of lo's run
+    for t in range(m):
+        for k in range(3):
+            start[min(triangles[t, k], triangles[t, (k + 1) % 3]) + 1] += 1
+    for v in range(n):
+        start[v + 1] += start[v]
+    fill = start[:n].copy()
+    side = np.empty((3 * m, 2), dtype=np.int64)  # (hi, 3 t + k) grouped by lo
+    for t in range(m):
+        for k in range(3):
+            a, b = triangles[t, k], triangles[t, (k + 1) % 3]
+            lo = min(a, b)
+            p = fill[lo]
+            side[p, 0] = max(a, b)
+            side[p, 1] = 3 * t + k
+            fill[lo] = p + 1
+    edges = np.empty((3 * m, 2), dtype=np.int64)
+    flat = np.empty(3 * m, dtype=np.int64)
+    n_edges = 0
+    for v in range(n):
+        b0, b1 = start[v], start[v + 1]
+        if b1 - b0 > INSERTION_SORT_MAX:
+            _merge_sort_rows(side, b0, b1)
+        else:
+            for i in range(b0 + 1, b1):
+                hi, s = side[i, 0], side[i, 1]
+                j = i - 1
+                while j >= b0 and side[j, 0] > hi:
+                    side[j + 1, 0], side[j + 1, 1] = side[j, 0], side[j, 1]
+                    j -= 1
+                side[j + 1, 0], side[j + 1, 1] = hi, s
+        for i in range(b0, b1):
+            if i == b0 or side[i, 0] != side[i - 1, 0]:
+                edges[n_edges, 0], edges[n_edges, 1] = v, side[i, 0]
+                n_edges += 1
+            flat[side[i, 1]] = n_edges - 1
+    return edges[:n_edges].copy(), flat.reshape(m, 3)
+
+
+@njit(**_JIT)
+def edge_triangles(tri_edges, n_edges):
+    """``(n_edges, 2)`` the first two triangles holding each edge, ascending, given
+    ``tri_edges`` ``(m, 3)`` (the edge of each side, as :func:`edge_table`); −1 in
+    column 1 for an edge of one triangle (in both for an edge of none).
+
+    Sides count in the order t, k: a triangle holding an edge with two sides
+    (a repeated corner) takes both columns, and an edge of three or more
+    triangles gets its two lowest."""
+    out = np.full((n_edges, 2), -1, dtype=np.int64)
+    for t in range(tri_edges.shape[0]):
+        for k in range(3):
+            e = tri_edges[t, k]
+            if out[e, 0] < 0:
+                out[e, 0] = t
+            elif out[e, 1] < 0:
+                out[e, 1] = t
+    return out
 
 
 # --------------------------------------------------------------------------- #

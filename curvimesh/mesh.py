@@ -29,6 +29,8 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from curvimesh import kernels
+
 __all__ = [
     "EdgeStore",
     "Mesh",
@@ -133,15 +135,10 @@ class Mesh:
 
     @cached_property
     def _edge_table(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        corners = self.corners
-        a = corners[:, _LOCAL_EDGES[:, 0]].ravel()  # flat index 3 t + k
-        b = corners[:, _LOCAL_EDGES[:, 1]].ravel()
-        lo, hi = np.minimum(a, b), np.maximum(a, b)
-        # One int64 key per pair keeps the lexicographic order of (lo, hi).
-        n = max(len(self.points), 1)
-        keys, inverse = np.unique(lo * n + hi, return_inverse=True)
-        edges = np.column_stack([keys // n, keys % n]).astype(np.int64)
-        return _readonly(edges), _readonly(inverse.reshape(-1, 3).astype(np.int64))
+        # A counting sort of the sides by their lower end (compiled): the sorted
+        # unique edges and the inverse that np.unique of lo * n + hi gives.
+        edges, tri_edges = kernels.edge_table(self.triangles, len(self.points))
+        return _readonly(edges), _readonly(tri_edges)
 
     @property
     def edges(self) -> NDArray[np.int64]:
@@ -159,16 +156,7 @@ class Mesh:
 
         On a non-conforming edge held by more than two triangles, the first two.
         """
-        n_edges = len(self.edges)
-        flat = self.tri_edges.ravel()
-        order = np.argsort(flat, kind="stable")  # grouped by edge, triangles ascending
-        counts = np.bincount(flat, minlength=n_edges)
-        start = np.cumsum(counts) - counts
-        result = np.full((n_edges, 2), -1, dtype=np.int64)
-        result[:, 0] = order[start] // 3
-        two = counts >= 2
-        result[two, 1] = order[start[two] + 1] // 3
-        return _readonly(result)
+        return _readonly(kernels.edge_triangles(self.tri_edges, len(self.edges)))
 
     @cached_property
     def edge_mid(self) -> NDArray[np.int64]:

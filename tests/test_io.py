@@ -467,10 +467,24 @@ def imported_modules(module) -> set[str]:
 
 
 def test_module_layering():
-    # mesh (layer 1) needs numpy only; io is the one user of meshio.
+    # mesh needs numpy and, of curvimesh, the compiled kernels only (its edge table);
+    # io is the one user of meshio.
     import curvimesh.mesh as cmesh
 
-    assert imported_modules(cmesh) == {"__future__", "dataclasses", "functools", "numpy"}
+    assert imported_modules(cmesh) == {
+        "__future__",
+        "dataclasses",
+        "functools",
+        "numpy",
+        "curvimesh",
+    }
+    tree = ast.parse(Path(cmesh.__file__).read_text())
+    own = [
+        ast.unparse(node)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Import | ast.ImportFrom) and "curvimesh" in ast.unparse(node)
+    ]
+    assert own == ["from curvimesh import kernels"]
     assert imported_modules(cio) & {"meshio", ".errors", ".mesh"} == {
         "meshio",
         ".errors",
