@@ -69,7 +69,7 @@ from numpy.typing import NDArray
 from curvimesh import geodesic
 from curvimesh.bezier import valid_exact
 from curvimesh.curve import assemble_p2
-from curvimesh.freenode import shortest_parabola, turns_fast
+from curvimesh.freenode import may_turn_fast, shortest_parabola, turns_fast
 from curvimesh.mesh import (
     EdgeStore,
     Mesh,
@@ -332,8 +332,8 @@ def intrinsic_flips(field: MetricField, mesh: Mesh, *, min_length: float = 0.7) 
     vertices, numbered as :func:`curvimesh.curve.assemble_p2` numbers, or
     ``mesh`` itself when no flip is made. Deterministic.
     """
-    if mesh.order != 2 or len(mesh.triangles) == 0:
-        return IntrinsicResult(mesh, 0)
+    if mesh.order != 2 or len(mesh.triangles) == 0 or not may_turn_fast(field):
+        return IntrinsicResult(mesh, 0)  # (the fast turns' grid screen, as in freenode)
     p1 = p1_of(mesh)
     region = fast_region(field, p1)
     if not region.any():
