@@ -197,7 +197,14 @@ def shortened_ends(
     """
     x1, v1 = shot.end[ok], shot.velocity[ok]
     par = shortest_parabola(
-        field, starts, x1, scan=5, alpha_tol=2e-3, exact_length=False, remember=False
+        field,
+        starts,
+        x1,
+        scan=5,
+        alpha_tol=2e-3,
+        exact_length=False,
+        remember=False,
+        start=np.zeros(len(starts)),
     )
     with np.errstate(invalid="ignore", divide="ignore"):
         s = np.clip(spacing / par.length, 0.0, 1.0)  # fraction of the geodesic kept
