@@ -432,6 +432,20 @@ def _search_alpha(field, x0, x1, grid, alpha_tol, segments, order, start=None):
     return _brent_minimise(length, a, b, c, fa, fb, fc, alpha_tol)
 
 
+def _lower_bound(sorted_keys: NDArray, keys: NDArray) -> NDArray:
+    """``np.searchsorted(sorted_keys, keys)`` of 32-byte void keys, by a compiled binary
+    search (:func:`curvimesh.kernels.bytes_lower_bound`; numpy compares void keys
+    through a generic path, 5.5 s for 3·10⁶ keys in 4·10⁶ against 0.2 s)."""
+    pos = np.empty(len(keys), dtype=np.int64)
+    if len(keys):
+        kernels.bytes_lower_bound(
+            np.ascontiguousarray(sorted_keys).view(np.uint8).reshape(len(sorted_keys), -1),
+            np.ascontiguousarray(keys).view(np.uint8).reshape(len(keys), -1),
+            pos,
+        )
+    return pos
+
+
 class _SearchMemo:
     """Finished searches of :func:`shortest_parabola` (α and the rule's length) by their
     exact end points, for one field and one set of search options.
@@ -457,7 +471,7 @@ class _SearchMemo:
             rest = np.flatnonzero(~found)
             if rest.size == 0:
                 break
-            pos = np.minimum(np.searchsorted(run_keys, keys[rest]), len(run_keys) - 1)
+            pos = np.minimum(_lower_bound(run_keys, keys[rest]), len(run_keys) - 1)
             hit = run_keys[pos] == keys[rest]
             at, pos = rest[hit], pos[hit]
             alpha[at], length[at], found[at] = run_alpha[pos], run_length[pos], True

@@ -1189,6 +1189,28 @@ def close_in_index(
         )  # fmt: skip
 
 
+@_row_kernel
+def bytes_lower_bound(keys, queries, pos):
+    """For each row of ``queries`` ``(k, b)`` (uint8), the first row of ``keys`` ``(n, b)``
+    (uint8, sorted byte-wise as memcmp sorts, which is numpy's order of void keys) not
+    below it, into ``pos`` ``(k,)``: ``np.searchsorted`` of void keys, binary search."""
+    n, width = keys.shape
+    for q in prange(queries.shape[0]):
+        lo, hi = 0, n
+        while lo < hi:
+            mid = (lo + hi) // 2
+            below = False  # keys[mid] < queries[q]
+            for c in range(width):
+                if keys[mid, c] != queries[q, c]:
+                    below = keys[mid, c] < queries[q, c]
+                    break
+            if below:
+                lo = mid + 1
+            else:
+                hi = mid
+        pos[q] = lo
+
+
 # --------------------------------------------------------------------------- #
 # Metric areas of curved triangles                                             #
 # --------------------------------------------------------------------------- #

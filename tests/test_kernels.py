@@ -443,3 +443,16 @@ def test_a_guess_is_refused_with_the_memo():
     fld = load_metric(METRICS / "toy.yaml")
     with pytest.raises(ValueError, match="remember"):
         geo.shortest_parabola(fld, [[0.1, 0.1]], [[0.2, 0.2]], start=np.zeros(1))
+
+
+def test_void_key_binary_search_is_numpys_searchsorted():
+    rng = np.random.default_rng(91)
+    pts = rng.normal(size=(5000, 4))
+    pts[1::2, :3] = pts[::2, :3]  # keys sharing 24 of their 32 bytes
+    keys = np.ascontiguousarray(np.vstack([pts, pts[:300]])).view(geo._PAIR_KEY).ravel()
+    keys.sort()  # with repeated keys
+    queries = np.vstack([pts[rng.integers(0, len(pts), 2000)], rng.normal(size=(2000, 4))])
+    queries[:10] = [[-1e300] * 4] * 5 + [[1e300] * 4] * 5  # before the first, after the last
+    q = np.ascontiguousarray(queries).view(geo._PAIR_KEY).ravel()
+    assert np.array_equal(geo._lower_bound(keys, q), np.searchsorted(keys, q))
+    assert geo._lower_bound(keys, q[:0]).shape == (0,)
