@@ -325,10 +325,7 @@ def any_closer_in_index(
         return geodesic.any_closer_in_index(
             field, a, mins, maxs, index, exclude, short, straight_order=straight_order
         )
-    q, hit = index.query(mins, maxs)
-    other = hit != exclude[q]
-    q, hit = q[other], hit[other]
-    offsets = np.searchsorted(q, np.arange(len(a) + 1))  # q is sorted
+    offsets, hit = geodesic.index_neighbours(index, mins, maxs, exclude)
     return any_closer(field, a, index.points, offsets, hit, short, straight_order=straight_order)
 
 

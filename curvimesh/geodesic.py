@@ -759,6 +759,15 @@ def any_closer(
     return out
 
 
+def index_neighbours(index, mins: NDArray, maxs: NDArray, exclude: NDArray):
+    """Offsets ``(k + 1,)`` and ids of the points of ``index`` in each box ``[mins[i],
+    maxs[i]]`` but ``exclude[i]``, as :func:`any_closer` takes them."""
+    q, hit = index.query(mins, maxs)
+    other = hit != exclude[q]
+    q, hit = q[other], hit[other]
+    return np.searchsorted(q, np.arange(len(mins) + 1)), hit  # q is sorted
+
+
 def any_closer_in_index(
     field: MetricField,
     a: NDArray,
@@ -779,10 +788,7 @@ def any_closer_in_index(
     """
     cm = field.kernel
     if cm is None or index.packed() is None or len(a) == 0:
-        q, hit = index.query(mins, maxs)
-        other = hit != exclude[q]
-        q, hit = q[other], hit[other]
-        offsets = np.searchsorted(q, np.arange(len(a) + 1))  # q is sorted
+        offsets, hit = index_neighbours(index, mins, maxs, exclude)
         return any_closer(
             field, a, index.points, offsets, hit, short, straight_order=straight_order
         )
