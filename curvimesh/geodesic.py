@@ -736,8 +736,8 @@ def any_closer(
     tries each point's pairs nearest first and stops at the first close one.
     """
     cm = field.kernel
-    q = np.repeat(np.arange(len(a)), np.diff(offsets))
     if cm is None:
+        q = np.repeat(np.arange(len(a)), np.diff(offsets))
         close = np.zeros(len(a), dtype=bool)
         for start in range(0, len(q), PAIR_BLOCK):  # bounded temporaries
             rows = slice(start, start + PAIR_BLOCK)
@@ -746,17 +746,30 @@ def any_closer(
             )
             close[q[rows][v < 0]] = True
         return close
-    ga = field.tensor(a, check=False)
+    a = _rows(a)[0]
     out = np.zeros(len(a), dtype=np.bool_)
-    ts, ws = _gauss(2, straight_order)
-    t, w = _gauss(2, 5)
     kernels.close_candidates(
-        cm.g, *_rows(a), np.ascontiguousarray(ga[:, [0, 0, 1], [0, 1, 1]]), *_rows(b),
+        cm.g, a, _metric_rows(field, a), *_rows(b),
         np.ascontiguousarray(offsets, dtype=np.int64), np.ascontiguousarray(hits, dtype=np.int64),
-        float(short), LOWER_BOUND_MARGIN, _PROBES, ts, ws, np.linspace(-0.5, 0.5, BOUNDED_SCAN),
-        t, w, BOUNDED_TOL, out,
+        *_closeness_rule(short, straight_order), out,
     )  # fmt: skip
     return out
+
+
+def _metric_rows(field: MetricField, a: NDArray) -> NDArray:
+    """(g11, g12, g22) at points ``a`` ``(k, 2)`` as ``(k, 3)`` rows for the kernels."""
+    g = field.tensor(a, check=False)
+    return np.ascontiguousarray(g[:, [0, 0, 1], [0, 1, 1]])
+
+
+def _closeness_rule(short: float, straight_order: int) -> tuple:
+    """The trailing arguments of the compiled closeness tests
+    (:func:`curvimesh.kernels._is_close`): ``short``, the chord bound's margin and
+    probes, the straight segment's rule, the search's scan, rule and tolerance."""
+    ts, ws = _gauss(2, straight_order)
+    t, w = _gauss(2, 5)
+    grid = np.linspace(-0.5, 0.5, BOUNDED_SCAN)
+    return float(short), LOWER_BOUND_MARGIN, _PROBES, ts, ws, grid, t, w, BOUNDED_TOL
 
 
 def index_neighbours(index, mins: NDArray, maxs: NDArray, exclude: NDArray):
@@ -793,15 +806,11 @@ def any_closer_in_index(
             field, a, index.points, offsets, hit, short, straight_order=straight_order
         )
     a, mins, maxs = _rows(a, mins, maxs)
-    ga = field.tensor(a, check=False)
     out = np.zeros(len(a), dtype=np.bool_)
-    ts, ws = _gauss(2, straight_order)
-    t, w = _gauss(2, 5)
     kernels.close_in_index(
-        cm.g, a, np.ascontiguousarray(ga[:, [0, 0, 1], [0, 1, 1]]), mins, maxs,
+        cm.g, a, _metric_rows(field, a), mins, maxs,
         np.ascontiguousarray(exclude, dtype=np.int64), *index.packed(), *_rows(index.points),
-        float(short), LOWER_BOUND_MARGIN, _PROBES, ts, ws, np.linspace(-0.5, 0.5, BOUNDED_SCAN),
-        t, w, BOUNDED_TOL, out,
+        *_closeness_rule(short, straight_order), out,
     )  # fmt: skip
     return out
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from targets import assert_unit_mesh_targets
 
 from curvimesh import adapt as pipeline
 from curvimesh.mesh import is_conforming
@@ -155,13 +156,5 @@ def test_every_example_mesh_meets_the_unit_mesh_targets(path):
     # test) and 0.8 on average, at most 1.15 times the ideal triangle count
     fld = load_metric(path)
     mesh = pipeline.adapt(fld).mesh
-    rep = mesh_report(fld, mesh)
-    lengths = rep["edge_length"]
-    assert rep["valid"] and is_conforming(mesh)
-    assert lengths["min"] >= 0.7 * (1 - 1e-5)
-    assert lengths["in_range"] >= 0.98
-    assert lengths["max"] <= 1.5
-    if corner_quality_bound(sharpest_corner(fld)) >= 0.3:
-        assert rep["quality"]["min"] >= 0.3
-    assert rep["quality"]["mean"] >= 0.8
-    assert rep["efficiency"] <= 1.15
+    floor = corner_quality_bound(sharpest_corner(fld)) >= 0.3
+    assert_unit_mesh_targets(fld, mesh, quality_floor=floor)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from targets import assert_unit_mesh_targets
 
 from curvimesh import adapt as pipeline
 from curvimesh.bezier import valid_exact
@@ -21,7 +22,6 @@ from curvimesh.intrinsic import (
 from curvimesh.mesh import Mesh, flip_candidates, is_conforming
 from curvimesh.metric import load_metric, load_metric_text
 from curvimesh.quality import edge_lengths
-from curvimesh.report import mesh_report
 
 METRICS = Path(__file__).resolve().parents[1] / "metrics"
 TIGHT = METRICS / "hard" / "tight_front.yaml"
@@ -107,13 +107,4 @@ def test_the_tight_front_meets_the_unit_mesh_targets():
     # the intrinsic flips, 586 vertices, edges 0.700 - 5.63, 92.2 % in range, worst
     # quality 0.08 (about 10 s)
     fld = load_metric(TIGHT)
-    mesh = pipeline.adapt(fld).mesh
-    rep = mesh_report(fld, mesh)
-    lengths = rep["edge_length"]
-    assert rep["valid"] and is_conforming(mesh)
-    assert lengths["min"] >= 0.7 * (1 - 1e-5)
-    assert lengths["in_range"] >= 0.98
-    assert lengths["max"] <= 1.5
-    assert rep["quality"]["min"] >= 0.3
-    assert rep["quality"]["mean"] >= 0.8
-    assert rep["efficiency"] <= 1.15
+    assert_unit_mesh_targets(fld, pipeline.adapt(fld).mesh)
