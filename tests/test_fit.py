@@ -8,6 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial import Delaunay
 
 from curvimesh import adapt as pipeline
 from curvimesh.bezier import valid_exact
@@ -16,7 +19,7 @@ from curvimesh.fit import fit_nodes
 from curvimesh.interpolation import compile_function
 from curvimesh.interpolation_error import element_l2_squared, interpolation_error
 from curvimesh.io import read_mesh
-from curvimesh.mesh import Mesh
+from curvimesh.mesh import Mesh, local_edge
 from curvimesh.metric import load_metric_text
 
 _SPEC = importlib.util.spec_from_file_location(
@@ -160,3 +163,55 @@ def test_adapt_fits_by_default_and_no_fit_turns_it_off(tmp_path):
     want = pipeline.adapt(fld, pipeline.AdaptOptions(fit=False)).mesh
     assert errors[("--no-fit",)] == pytest.approx(interpolation_error(f, want).l2, rel=1e-9)
     assert errors[()] < 0.5 * errors[("--no-fit",)]
+
+
+def best_single_move_gain(f, mesh: Mesh, h: float) -> float:
+    """Largest drop of E (module docstring of curvimesh.fit) that moving one interior
+    edge node by h ℓ along its chord's normal or tangent gives, over the total."""
+    pts, tris = np.asarray(mesh.points), np.asarray(mesh.triangles)
+    local = element_l2_squared(f, pts[tris], order=6)
+    inner = np.flatnonzero(mesh.edge_tris[:, 1] >= 0)
+    t1, t2 = mesh.edge_tris[inner, 0], mesh.edge_tris[inner, 1]
+    s1 = 3 + local_edge(mesh.tri_edges, t1, inner)
+    s2 = 3 + local_edge(mesh.tri_edges, t2, inner)
+    tangent = pts[mesh.edges[inner, 1]] - pts[mesh.edges[inner, 0]]
+    normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
+    rows = np.arange(len(inner))
+    worst = 0.0
+    for d in (normal, -normal, tangent, -tangent):
+        a1, a2 = pts[tris[t1]].copy(), pts[tris[t2]].copy()
+        a1[rows, s1] = a2[rows, s2] = pts[mesh.edge_mid[inner]] + h * d
+        ok = valid_exact(a1) & valid_exact(a2)
+        moved = element_l2_squared(f, a1[ok], order=6) + element_l2_squared(f, a2[ok], order=6)
+        worst = max(worst, float(np.max(local[t1[ok]] + local[t2[ok]] - moved)))
+    return worst / float(local.sum())
+
+
+def test_the_fit_ends_near_a_minimum_of_every_node():
+    # coordinate descent over all edge nodes: after the fit no single node move
+    # of ℓ/256 may lower the error by more than 0.1 % of it (0.06 % measured; the
+    # mesh before the fit 0.30 %, the first version's fit, one independent set of
+    # moves per round and steps down to ℓ/1024 only, 0.56 %)
+    f = compile_function(FRONT)
+    mesh = pipeline.adapt(load_metric_text(FRONT_YAML), pipeline.AdaptOptions(fit=False)).mesh
+    assert best_single_move_gain(f, mesh, 1 / 256) > 2e-3  # 0.30 % before
+    out = fit_nodes(f, mesh).mesh
+    assert best_single_move_gain(f, out, 1 / 256) < 1e-3
+
+
+@given(st.integers(0, 2**31 - 1), st.integers(3, 12))
+@settings(max_examples=30, deadline=None)
+def test_edge_colours_never_share_a_triangle(seed, n):
+    from curvimesh.fit import edge_colours
+
+    pts = np.random.default_rng(seed).random((n * n, 2))
+    tri = Delaunay(pts).simplices
+    mesh = Mesh(pts, tri, (0.0, 0.0, 1.0, 1.0))
+    t1 = mesh.edge_tris[:, 0]
+    t2 = np.where(mesh.edge_tris[:, 1] < 0, t1, mesh.edge_tris[:, 1])
+    colours = edge_colours(t1, t2, len(tri))
+    assert colours.min() >= 0 and colours.max() <= 4
+    for c in np.unique(colours):
+        k = colours == c
+        touched = np.concatenate([t1[k], t2[k][t2[k] != t1[k]]])
+        assert len(np.unique(touched)) == len(touched)
