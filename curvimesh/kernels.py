@@ -118,8 +118,10 @@ def intersect(a11, a12, a22, b11, b12, b22):
     """Metric intersection by simultaneous reduction, one point, real or complex.
 
     The scalar twin of :func:`curvimesh.metric.intersect_components` (same
-    formula, same branches chosen on real parts, same degenerate case); with
-    complex arguments it serves the complex-step derivatives.
+    formula, same branches chosen on real parts, same degenerate case). The
+    compiled metrics call it on reals; :func:`intersect_d` carries the same
+    formula with its derivatives; with complex arguments it gives them by the
+    complex step (the tests' reference for :func:`intersect_d`).
     """
     qa = a11 * a22 - a12 * a12
     qb = -(a11 * b22 + a22 * b11 - 2.0 * a12 * b12)
@@ -158,28 +160,125 @@ def intersect(a11, a12, a22, b11, b12, b22):
     return o11, o12, o22
 
 
+# Forward-mode arithmetic for intersect_d: a quantity u travels as the triple
+# (u, ∂ₓu, ∂ᵧu); each helper computes the value exactly as intersect does (same
+# operations in the same order, hence the same bits) and the two derivatives by
+# the chain rule of that one operation.
+
+
+@njit(**_JIT)
+def _dual(g, i):
+    """Component i (0: 11, 1: 12, 2: 22) of a 9-tuple (g, ∂ₓg, ∂ᵧg) as (u, ∂ₓu, ∂ᵧu)."""
+    return (g[i], g[i + 3], g[i + 6])
+
+
+@njit(**_JIT)
+def _d_add(u, v):
+    """u + v: ∂(u + v) = ∂u + ∂v."""
+    return (u[0] + v[0], u[1] + v[1], u[2] + v[2])
+
+
+@njit(**_JIT)
+def _d_sub(u, v):
+    """u − v: ∂(u − v) = ∂u − ∂v."""
+    return (u[0] - v[0], u[1] - v[1], u[2] - v[2])
+
+
+@njit(**_JIT)
+def _d_scale(c, u):
+    """c u for a constant c: ∂(c u) = c ∂u."""
+    return (c * u[0], c * u[1], c * u[2])
+
+
+@njit(**_JIT)
+def _d_mul(u, v):
+    """u v: ∂(u v) = ∂u v + u ∂v."""
+    return (u[0] * v[0], u[1] * v[0] + u[0] * v[1], u[2] * v[0] + u[0] * v[2])
+
+
+@njit(**_JIT)
+def _d_div(u, v):
+    """q = u / v: ∂q = (∂u − q ∂v) / v."""
+    q = u[0] / v[0]
+    return (q, (u[1] - q * v[1]) / v[0], (u[2] - q * v[2]) / v[0])
+
+
+@njit(**_JIT)
+def _d_sqrt(u):
+    """r = √u: ∂r = ∂u / (2 r)."""
+    r = np.sqrt(u[0])
+    return (r, u[1] / (2.0 * r), u[2] / (2.0 * r))
+
+
+@njit(**_JIT)
+def _d_max1(s):
+    """max(s, 1) as :func:`intersect` takes it: s and ∂s if s > 1, else 1 and 0
+    (the derivative of the branch chosen at the point, one-sided at s = 1; a NaN
+    in s stays NaN, as 1 + 0 s)."""
+    if s[0] > 1.0:
+        return s
+    return (1.0 + 0.0 * s[0], 0.0 * s[1], 0.0 * s[2])
+
+
 @njit(**_JIT)
 def intersect_d(a, b):
-    """Intersection of two 9-tuples (g and ∂g) with its derivatives by complex step.
+    """Intersection of two 9-tuples (g, ∂ₓg, ∂ᵧg) with its derivatives, forward mode.
 
-    The derivative along x_k is Im I(M1 + i h ∂ₖM1, M2 + i h ∂ₖM2) / h, h = 1e-30
-    (Squire & Trapp 1998), as in :func:`curvimesh.metric.intersect_with_derivatives`;
-    the value is the real part of the second step.
+    The intersection I(M1, M2) of :func:`intersect` is a composition of
+    arithmetic and one square root: with q(s) = det(M2 − s M1) = qa s² + qb s + qc,
+    disc = qb² − 4 qa qc, the roots s = (∓√disc − qb) / (2 qa), for each s the null
+    vector v of C = M2 − s M1 (v = (−c12, c11) or (c22, −c12)), w = M1 v, λ = vᵀw,
+    and I = Σ max(s, 1) / λ · w wᵀ (max(s, 1) M1 where s1 ≈ s2). Its derivative
+    along x_k is the directional derivative of that composition along (∂ₖM1, ∂ₖM2):
+    every quantity u is carried with (∂ₓu, ∂ᵧu) and each line's chain rule gives
+    theirs (e.g. ∂√disc = ∂disc / (2√disc), ∂(u/v) = (∂u − (u/v) ∂v) / v), both
+    directions in one pass over the shared values. The branches (degenerate case,
+    null-vector row, max(s, 1)) are chosen on the values, as :func:`intersect`
+    does, so the derivative is that of the branch selected at the point: where I
+    is not smooth, a one-sided derivative. The values are :func:`intersect`'s,
+    bit for bit; the derivatives are the complex step's of
+    :func:`curvimesh.metric.intersect_with_derivatives` to rounding (which the
+    two amplify alike where s1 ≈ s2). A non-finite derivative of M1 or M2 stays
+    in the derivatives (the complex step spread one along y into the values too).
     """
-    h = 1e-30
-    ih = 1j * h
-    z0 = intersect(
-        a[0] + ih * a[3], a[1] + ih * a[4], a[2] + ih * a[5],
-        b[0] + ih * b[3], b[1] + ih * b[4], b[2] + ih * b[5],
-    )  # fmt: skip
-    z1 = intersect(
-        a[0] + ih * a[6], a[1] + ih * a[7], a[2] + ih * a[8],
-        b[0] + ih * b[6], b[1] + ih * b[7], b[2] + ih * b[8],
-    )  # fmt: skip
+    a11, a12, a22 = _dual(a, 0), _dual(a, 1), _dual(a, 2)
+    b11, b12, b22 = _dual(b, 0), _dual(b, 1), _dual(b, 2)
+    qa = _d_sub(_d_mul(a11, a22), _d_mul(a12, a12))
+    qb = _d_scale(
+        -1.0,
+        _d_sub(_d_add(_d_mul(a11, b22), _d_mul(a22, b11)), _d_mul(_d_scale(2.0, a12), b12)),
+    )
+    qc = _d_sub(_d_mul(b11, b22), _d_mul(b12, b12))
+    disc = _d_sub(_d_mul(qb, qb), _d_mul(_d_scale(4.0, qa), qc))
+    inv2qa = _d_div((0.5, 0.0, 0.0), qa)
+    if disc[0] <= 1e-10 * (qb[0] * qb[0]):  # degenerate: max(1, s) M1
+        big = _d_max1(_d_mul(_d_scale(-1.0, qb), inv2qa))
+        o11, o12, o22 = _d_mul(big, a11), _d_mul(big, a12), _d_mul(big, a22)
+    else:
+        root = _d_sqrt(disc)
+        o11 = o12 = o22 = _d_scale(0.0, qa)
+        for k in range(2):
+            sgn = -1.0 if k == 0 else 1.0
+            s = _d_mul(_d_sub(_d_scale(sgn, root), qb), inv2qa)
+            c11 = _d_sub(b11, _d_mul(s, a11))
+            c12 = _d_sub(b12, _d_mul(s, a12))
+            c22 = _d_sub(b22, _d_mul(s, a22))
+            if abs(c11[0]) >= abs(c22[0]):
+                v1, v2 = _d_scale(-1.0, c12), c11
+            else:
+                v1, v2 = c22, _d_scale(-1.0, c12)
+            w1 = _d_add(_d_mul(a11, v1), _d_mul(a12, v2))
+            w2 = _d_add(_d_mul(a12, v1), _d_mul(a22, v2))
+            lam = _d_add(_d_mul(v1, w1), _d_mul(v2, w2))
+            f = _d_div(_d_max1(s), lam)
+            fw1 = _d_mul(f, w1)
+            o11 = _d_add(o11, _d_mul(fw1, w1))
+            o12 = _d_add(o12, _d_mul(fw1, w2))
+            o22 = _d_add(o22, _d_mul(_d_mul(f, w2), w2))
     return (
-        z1[0].real, z1[1].real, z1[2].real,
-        z0[0].imag / h, z0[1].imag / h, z0[2].imag / h,
-        z1[0].imag / h, z1[1].imag / h, z1[2].imag / h,
+        o11[0], o12[0], o22[0],
+        o11[1], o12[1], o22[1],
+        o11[2], o12[2], o22[2],
     )  # fmt: skip
 
 

@@ -147,6 +147,9 @@ def intersect_with_derivatives(a: tuple, da: list, b: tuple, db: list) -> tuple[
     of the branch selected at the point, a one-sided derivative, which is
     what a geodesic integrator stepping across the kink needs. The real part
     of a complex step is the value itself (h² is far below rounding).
+
+    The reference for :func:`curvimesh.kernels.intersect_d`, which computes the
+    same derivatives on the compiled path in forward mode.
     """
     h = 1e-30
     out = []
@@ -337,9 +340,10 @@ class MetricField:
         """Python source of ``field_g`` and ``field_gd``, the metric at one point
         (signatures :data:`curvimesh.kernels.SIG_G` and ``SIG_GD``), generated from
         the components' expressions: the intersection folded left (its derivatives
-        by complex step), a non-finite value replaced by the value 1e-9 box sizes
-        away, NaN where g is not SPD, non-finite derivatives by central differences,
-        as :meth:`evaluate_numpy` does. Each component gives its own functions by
+        in forward mode, :func:`curvimesh.kernels.intersect_d`; the numpy path's by
+        complex step), a non-finite value replaced by the value 1e-9 box sizes away,
+        NaN where g is not SPD, non-finite derivatives by central differences, as
+        :meth:`evaluate_numpy` does. Each component gives its own functions by
         its ``scalar_source`` method (:meth:`Component.scalar_source`,
         :meth:`~curvimesh.interpolation.InterpolationMetric.scalar_source`); None when a
         component has no such method or an expression has no scalar code."""
