@@ -50,6 +50,13 @@ independent set of moves per round, the fitted error of a circular tanh front
 vertices; with the sweeps and steps down to ℓ/65536 it is 2.5 to 3 times lower
 at 8,000 and 16,000 vertices, and falls as N^-1.56 between them.
 
+One node at a time cannot leave every trap: a sliver across a sharp layer
+whose geodesic edges make its interpolant far from f, while straightening
+any one of them inverts a neighbour. After the sweeps, the triangles whose
+error stands out have the edges around them straightened together
+(:func:`unbend_outliers`), and :data:`POLISH_ROUNDS` more sweeps polish the
+edges there.
+
 Beyond the paper (which curves for the metric only); :func:`curvimesh.adapt.swap`
 runs it last when the metric is an ``interpolation`` form (``--no-fit`` turns
 it off). It trades the unit lengths of the curved edges, which the report
@@ -73,6 +80,17 @@ SCALES = (1.25, 0.75, 0.5, 0.0)
 #: First pattern step, relative to the edge's length, and the smallest one tried.
 FIRST_STEP = 0.125
 MIN_STEP = 2.0**-16
+
+#: A triangle whose error exceeds this many times the mean is an outlier
+#: (:func:`unbend_outliers`), and at most this many are treated.
+OUTLIER = 100.0
+MAX_OUTLIERS = 2000
+
+#: Rounds of sweeps after the outliers are unbent.
+POLISH_ROUNDS = 10
+
+#: Rings of triangles around an outlier whose edges are straightened together.
+RINGS = 3
 
 #: Quadrature order of the local errors (collapsed Gauss, exact to degree 10).
 ERROR_ORDER = 6
@@ -177,6 +195,80 @@ def _best_nodes(
     return best_mid, best_parts, np.where(gain > 0.0, gain, 0.0)
 
 
+def triangles_at_vertices(tris3: NDArray, n: int) -> tuple[NDArray, NDArray]:
+    """The triangles around each vertex, in compressed rows: the triangles of
+    vertex v are ``order[start[v]:start[v + 1]]`` (``tris3`` ``(m, 3)``, n points).
+
+    >>> start, order = triangles_at_vertices(np.array([[0, 1, 2], [1, 3, 2]]), 4)
+    >>> order[start[2] : start[3]].tolist()
+    [0, 1]
+    """
+    flat = np.asarray(tris3).ravel()
+    order = np.argsort(flat, kind="stable") // 3
+    start = np.searchsorted(flat[np.argsort(flat, kind="stable")], np.arange(n + 1))
+    return start, order
+
+
+def unbend_outliers(
+    f: Callable[[NDArray], NDArray],
+    mesh: Mesh,
+    pts: NDArray,
+    local: NDArray,
+    *,
+    ratio: float = OUTLIER,
+    limit: int = MAX_OUTLIERS,
+) -> NDArray[np.int64]:
+    """Straighten the edges around the triangles whose error stands out; in place.
+
+    A triangle whose local error (``local``, its share of E) exceeds ``ratio``
+    times the mean is an outlier. One node at a time cannot always unbend it:
+    across a sharp layer a sliver's edges bent along the geodesics may make
+    its interpolant far from f, while straightening any one of them inverts
+    a neighbour whose other edges are still bent (measured: the fitted mesh of
+    ``bench/convergence.py``'s f3 at 53,000 vertices, 10 triangles with 99 %
+    of the squared error, each 10⁴ times worse than its straight version). So
+    for each outlier, worst first, this tries moving jointly to the chord
+    midpoints the nodes of its own three edges, then those of every edge of
+    the triangles at its vertices (one ring), then of the triangles at their
+    vertices, up to :data:`RINGS` rings, and keeps the first set that leaves
+    every triangle having one of those edges valid (exactly, from Bezier
+    coefficients) with a lower sum of their errors. ``pts`` and ``local`` are
+    updated; returns the edges whose nodes moved. At most ``limit`` outliers.
+    """
+    tris = np.asarray(mesh.triangles)
+    if len(tris) == 0:
+        return np.zeros(0, dtype=np.int64)
+    mean = float(local.mean())
+    worst = np.argsort(-local, kind="stable")[:limit]
+    worst = worst[local[worst] > ratio * mean]
+    if worst.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    start, order = triangles_at_vertices(tris[:, :3], len(pts))
+    tri_edges, edge_tris, edges, emid = mesh.tri_edges, mesh.edge_tris, mesh.edges, mesh.edge_mid
+    moved = []
+    for t in worst.tolist():
+        if local[t] <= ratio * mean:  # a neighbour's unbending fixed it already
+            continue
+        ring = np.array([t])
+        for _ in range(RINGS + 1):
+            group = np.unique(tri_edges[ring])
+            around = np.unique(edge_tris[group])
+            around = around[around >= 0]
+            keep = pts[emid[group]].copy()
+            pts[emid[group]] = 0.5 * (pts[edges[group, 0]] + pts[edges[group, 1]])
+            nodes = pts[tris[around]]
+            if valid_exact(nodes).all():
+                err = element_l2_squared(f, nodes, order=ERROR_ORDER)
+                if err.sum() < local[around].sum():
+                    local[around] = err
+                    moved.append(group)
+                    break
+            pts[emid[group]] = keep
+            verts = np.unique(tris[ring, :3])
+            ring = np.unique(np.concatenate([order[start[v] : start[v + 1]] for v in verts]))
+    return np.unique(np.concatenate(moved)) if moved else np.zeros(0, dtype=np.int64)
+
+
 def fit_nodes(
     f: Callable[[NDArray], NDArray],
     mesh: Mesh,
@@ -214,31 +306,43 @@ def fit_nodes(
     step = np.where(local[t1] + np.where(side, 0.0, local[t2]) > noise, FIRST_STEP, 0.0)
     colours = edge_colours(t1, t2, len(tris))
     moves = rounds = 0
-    while rounds < max_rounds:
-        if not np.any(step >= MIN_STEP):
-            break
-        rounds += 1
-        swept = 0.0
-        for colour in range(int(colours.max()) + 1 if len(colours) else 0):
-            live = np.flatnonzero((colours == colour) & (step >= MIN_STEP))
-            if live.size == 0:
-                continue
-            one = side[live]
-            best_mid, parts, gain = _best_nodes(
-                f, pts, tris, local, one,
-                emid[cand[live]], straight[live], normal[live], tangent[live],
-                t1[live], t2[live], s1[live], s2[live], step[live],
-            )  # fmt: skip
-            # no two edges of a colour share a triangle: the improving ones move together
-            k = np.flatnonzero(gain > 0.0)
-            step[live[gain <= 0.0]] *= 0.5
-            pts[emid[cand[live[k]]]] = best_mid[k]
-            local[t1[live[k]]] = parts[k, 0]
-            k2 = k[~one[k]]
-            local[t2[live[k2]]] = parts[k2, 1]
-            moves += len(k)
-            swept += float(gain[k].sum())
-        if swept < rtol * local.sum():
-            break
+
+    def sweeps(most: int) -> None:
+        nonlocal moves, rounds
+        for _ in range(most):
+            if not np.any(step >= MIN_STEP):
+                break
+            rounds += 1
+            swept = 0.0
+            for colour in range(int(colours.max()) + 1):
+                live = np.flatnonzero((colours == colour) & (step >= MIN_STEP))
+                if live.size == 0:
+                    continue
+                one = side[live]
+                best_mid, parts, gain = _best_nodes(
+                    f, pts, tris, local, one,
+                    emid[cand[live]], straight[live], normal[live], tangent[live],
+                    t1[live], t2[live], s1[live], s2[live], step[live],
+                )  # fmt: skip
+                # no two edges of a colour share a triangle: the improving ones move together
+                k = np.flatnonzero(gain > 0.0)
+                step[live[gain <= 0.0]] *= 0.5
+                pts[emid[cand[live[k]]]] = best_mid[k]
+                local[t1[live[k]]] = parts[k, 0]
+                k2 = k[~one[k]]
+                local[t2[live[k2]]] = parts[k2, 1]
+                moves += len(k)
+                swept += float(gain[k].sum())
+            if swept < rtol * local.sum():
+                break
+
+    sweeps(max_rounds)
+    unbent = unbend_outliers(f, mesh, pts, local)
+    if unbent.size:
+        # the unbent edges and their triangles' other edges descend again from there
+        touched = np.unique(et[unbent])
+        step[np.unique(tri_edges[touched[touched >= 0]])] = FIRST_STEP
+        moves += len(unbent)
+        sweeps(POLISH_ROUNDS)
     after = float(np.sqrt(local.sum()))
     return FitResult(Mesh(pts, tris, mesh.box), moves, rounds, before, after)

@@ -215,3 +215,30 @@ def test_edge_colours_never_share_a_triangle(seed, n):
         k = colours == c
         touched = np.concatenate([t1[k], t2[k][t2[k] != t1[k]]])
         assert len(np.unique(touched)) == len(touched)
+
+
+def test_outliers_are_unbent_together():
+    # a quadratic on a straight grid is interpolated exactly; bend every edge at
+    # one vertex and the triangles there become outliers (the rest have no error):
+    # straightening their edges together restores the error to rounding
+    from curvimesh.fit import unbend_outliers
+
+    f = compile_function("x**2 + 3*x*y - 2*y**2 + x")
+    mesh = grid_p2(6)
+    pts = np.array(mesh.points)
+    centre = int(np.argmin(np.hypot(pts[:, 0] - 0.5, pts[:, 1] - 0.5)))
+    at = np.flatnonzero((mesh.edges == centre).any(axis=1))
+    a, b = pts[mesh.edges[at, 0]], pts[mesh.edges[at, 1]]
+    pts[mesh.edge_mid[at]] += 0.15 * np.column_stack([-(b - a)[:, 1], (b - a)[:, 0]])
+    bent_mesh = Mesh(pts, mesh.triangles, mesh.box)
+    assert valid_exact(pts[bent_mesh.triangles]).all()
+    local = element_l2_squared(f, pts[bent_mesh.triangles], order=6)
+    before = np.sqrt(local.sum())
+    assert before > 1e-4
+    moved = unbend_outliers(f, bent_mesh, pts, local, ratio=5.0)  # 6 of 72 triangles bent
+    assert set(at.tolist()) <= set(moved.tolist())
+    assert valid_exact(pts[bent_mesh.triangles]).all()
+    straight_nodes = np.asarray(mesh.points)[mesh.edge_mid]
+    np.testing.assert_allclose(pts[mesh.edge_mid], straight_nodes, atol=1e-15)
+    assert np.sqrt(local.sum()) < 1e-12 * before
+    assert interpolation_error(f, Mesh(pts, mesh.triangles, mesh.box)).l2 < 1e-14
