@@ -77,6 +77,7 @@ from curvimesh.mesh import Mesh, local_edge, signed_areas
 
 #: Scalings s of an edge's bend tried each round (1 is the current node).
 SCALES = (1.25, 0.75, 0.5, 0.0)
+
 #: First pattern step, relative to the edge's length, and the smallest one tried.
 FIRST_STEP = 0.125
 MIN_STEP = 2.0**-16
@@ -204,9 +205,9 @@ def triangles_at_vertices(tris3: NDArray, n: int) -> tuple[NDArray, NDArray]:
     [0, 1]
     """
     flat = np.asarray(tris3).ravel()
-    order = np.argsort(flat, kind="stable") // 3
-    start = np.searchsorted(flat[np.argsort(flat, kind="stable")], np.arange(n + 1))
-    return start, order
+    by_vertex = np.argsort(flat, kind="stable")
+    start = np.searchsorted(flat[by_vertex], np.arange(n + 1))
+    return start, by_vertex // 3
 
 
 def unbend_outliers(
@@ -289,16 +290,16 @@ def fit_nodes(
     local = element_l2_squared(f, pts[tris], order=ERROR_ORDER)
     before = float(np.sqrt(local.sum()))
     edges, emid, et, tri_edges = mesh.edges, mesh.edge_mid, mesh.edge_tris, mesh.tri_edges
-    cand = np.arange(len(edges))
-    x0, x1 = pts[edges[cand, 0]], pts[edges[cand, 1]]
+    x0, x1 = pts[edges[:, 0]], pts[edges[:, 1]]
     straight = 0.5 * (x0 + x1)
     tangent = x1 - x0  # of length ℓ: steps are relative to the edge
     normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
     # a boundary edge has one triangle: t2 = t1 stands in, its error counted once
-    side = et[cand, 1] < 0
-    t1 = et[cand, 0]
-    t2 = np.where(side, t1, et[cand, 1])
-    s1, s2 = 3 + local_edge(tri_edges, t1, cand), 3 + local_edge(tri_edges, t2, cand)
+    side = et[:, 1] < 0
+    t1 = et[:, 0]
+    t2 = np.where(side, t1, et[:, 1])
+    ids = np.arange(len(edges))
+    s1, s2 = 3 + local_edge(tri_edges, t1, ids), 3 + local_edge(tri_edges, t2, ids)
     # a pair whose error is at the level of rounding is left alone
     scale = float(np.abs(f(pts[np.unique(tris)])).max())
     areas = np.abs(signed_areas(pts, tris[:, :3]))
@@ -321,13 +322,13 @@ def fit_nodes(
                 one = side[live]
                 best_mid, parts, gain = _best_nodes(
                     f, pts, tris, local, one,
-                    emid[cand[live]], straight[live], normal[live], tangent[live],
+                    emid[live], straight[live], normal[live], tangent[live],
                     t1[live], t2[live], s1[live], s2[live], step[live],
                 )  # fmt: skip
                 # no two edges of a colour share a triangle: the improving ones move together
                 k = np.flatnonzero(gain > 0.0)
                 step[live[gain <= 0.0]] *= 0.5
-                pts[emid[cand[live[k]]]] = best_mid[k]
+                pts[emid[live[k]]] = best_mid[k]
                 local[t1[live[k]]] = parts[k, 0]
                 k2 = k[~one[k]]
                 local[t2[live[k2]]] = parts[k2, 1]
