@@ -167,11 +167,12 @@ def check_translations(scales: dict[str, list[float]]) -> list[str]:
 
     At s = 1 the generated YAML must give the tensor of ``metrics/NAME.yaml``;
     at every scale the Gmsh expressions (evaluated in Python; intersected by
-    :func:`curvimesh.metric.intersect` for several rings) must give the
+    :func:`curvimesh.tensors.intersect` for several rings) must give the
     tensor of the generated YAML. Returns one line per check; raises on a
     mismatch.
     """
-    from curvimesh.metric import intersect, load_metric, load_metric_text
+    from curvimesh.metric import load_metric, load_metric_text
+    from curvimesh.tensors import intersect
 
     rng = np.random.default_rng(1)
     pts = rng.uniform(BOX[0], BOX[2], (2000, 2))

@@ -117,7 +117,7 @@ def _re(z):
 def intersect(a11, a12, a22, b11, b12, b22):
     """Metric intersection by simultaneous reduction, one point, real or complex.
 
-    The scalar twin of :func:`curvimesh.metric.intersect_components` (same
+    The scalar twin of :func:`curvimesh.tensors.intersect_components` (same
     formula, same branches chosen on real parts, same degenerate case). The
     compiled metrics call it on reals; :func:`intersect_d` carries the same
     formula with its derivatives; with complex arguments it gives them by the
@@ -237,7 +237,7 @@ def intersect_d(a, b):
     does, so the derivative is that of the branch selected at the point: where I
     is not smooth, a one-sided derivative. The values are :func:`intersect`'s,
     bit for bit; the derivatives are the complex step's of
-    :func:`curvimesh.metric.intersect_with_derivatives` to rounding (which the
+    :func:`curvimesh.tensors.intersect_with_derivatives` to rounding (which the
     two amplify alike where s1 ≈ s2). A non-finite derivative of M1 or M2 stays
     in the derivatives (the complex step spread one along y into the values too).
     """
@@ -355,7 +355,7 @@ def _load_generated(source: str, entries: Mapping[str, str]) -> dict:
     names = re.findall(r"^def (\w+)\(", source, flags=re.MULTILINE)
     helpers = [n for n in names if n not in entries]
     foot = f"\nfor _name in {helpers!r}:\n"
-    foot += '    globals()[_name] = njit(error_model="numpy", cache=True)(globals()[_name])\n'
+    foot += '    globals()[_name] = njit(error_model="numpy")(globals()[_name])\n'
     for name, sig in entries.items():
         foot += f'{name}_cfunc = cfunc({sig}, error_model="numpy", cache=True)({name})\n'
     text = (
@@ -1517,6 +1517,143 @@ def _one_sided(g, p, m, h):
     return (g[0] - m[0]) / h, (g[1] - m[1]) / h, (g[2] - m[2]) / h
 
 
+# --------------------------------------------------------------------------- #
+# Graded background grids (:mod:`curvimesh.gradation`)                          #
+# --------------------------------------------------------------------------- #
+
+
+@njit(**_JIT)
+def span_metric(g11, g12, g22, grow):
+    """The SPD tensor (g11, g12, g22) with its sizes hᵢ = λᵢ^(−1/2) grown to hᵢ + grow,
+    its eigenvectors kept (:func:`curvimesh.gradation.span_components`).
+
+    λ₁ = m + r (m, r the mean and half-difference radius of the eigenvalues) along
+    (cos φ, sin φ) of :func:`shape_frame`, λ₂ = det / λ₁ across it.
+    """
+    m = 0.5 * (g11 + g22)
+    r = math.hypot(0.5 * (g11 - g22), g12)
+    l1 = m + r
+    l2 = (g11 * g22 - g12 * g12) / l1
+    cos, sin = shape_frame(g11, g12, g22)
+    h1 = 1.0 / math.sqrt(l1) + grow
+    h2 = 1.0 / math.sqrt(l2) + grow
+    return tensor_from_frame(cos, sin, 1.0 / (h1 * h1), 1.0 / (h2 * h2))
+
+
+@njit(**_JIT)
+def grade_metrics(g, dx, dy, rate, max_sweeps, margin):
+    """Grade the metrics ``g`` ``(nx, ny, 3)`` of a grid's nodes in place; the sweeps done.
+
+    Node (i, j) sits at (x0 + i dx, y0 + j dy). Each node q takes the intersection
+    (:func:`intersect`) of its metric with the span of each of its 8 neighbours p:
+    M_p with the same eigenvectors and each of its sizes hᵢ grown to hᵢ + rate |pq|
+    (:func:`span_metric`). Gauss-Seidel sweeps in the four raster orders (fast
+    sweeping), until a sweep changes no node, or ``max_sweeps``. A span changes a
+    node only where it is finer by more than the relative ``margin``: where
+    (1 + margin) M_q − span is not positive semidefinite (without a margin, the
+    rounding of the spans and intersections of a converged grid would keep
+    changing it in the last bits).
+    """
+    nx, ny = g.shape[0], g.shape[1]
+    grow_x, grow_y, grow_xy = rate * dx, rate * dy, rate * math.hypot(dx, dy)
+    scale = 1.0 + margin
+    for sweep in range(max_sweeps):
+        changed = False
+        for order in range(4):
+            for ii in range(nx):
+                i = ii if order % 2 == 0 else nx - 1 - ii
+                for jj in range(ny):
+                    j = jj if order < 2 else ny - 1 - jj
+                    a11, a12, a22 = g[i, j, 0], g[i, j, 1], g[i, j, 2]
+                    for di in range(-1, 2):
+                        for dj in range(-1, 2):
+                            p, q = i + di, j + dj
+                            if (di == 0 and dj == 0) or p < 0 or p >= nx or q < 0 or q >= ny:
+                                continue
+                            grow = (
+                                grow_xy if di != 0 and dj != 0 else (grow_x if di != 0 else grow_y)
+                            )
+                            b11, b12, b22 = span_metric(g[p, q, 0], g[p, q, 1], g[p, q, 2], grow)
+                            d11, d12, d22 = scale * a11 - b11, scale * a12 - b12, scale * a22 - b22
+                            if d11 >= 0.0 and d22 >= 0.0 and d11 * d22 - d12 * d12 >= 0.0:
+                                continue
+                            a11, a12, a22 = intersect(a11, a12, a22, b11, b12, b22)
+                    if a11 != g[i, j, 0] or a12 != g[i, j, 1] or a22 != g[i, j, 2]:
+                        g[i, j, 0], g[i, j, 1], g[i, j, 2] = a11, a12, a22
+                        changed = True
+        if not changed:
+            return sweep + 1
+    return max_sweeps
+
+
+@njit(**_JIT)
+def exp_tensor(l11, l12, l22):
+    """:func:`curvimesh.tensors.exp_components` at one point: exp of (L11, L12, L22)."""
+    m = 0.5 * (l11 + l22)
+    d = 0.5 * (l11 - l22)
+    r = math.hypot(d, l12)
+    e = math.exp(m)
+    c = e * math.cosh(r)
+    s = e * (math.sinh(r) / r if r > 1e-8 else 1.0)
+    return c + s * d, s * l12, c - s * d
+
+
+@njit(**_JIT)
+def bspline_basis(t):
+    """The four uniform cubic B-spline weights at t (:func:`curvimesh.gradation.bspline_basis`)."""
+    s = 1.0 - t
+    t2 = t * t
+    t3 = t2 * t
+    return (
+        s * s * s / 6.0,
+        (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0,
+        (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0,
+        t3 / 6.0,
+    )
+
+
+@njit(**_JIT)
+def _cell(u, n):
+    """Cell index in [0, n − 2] of grid coordinate u and the offset in it, within [−1, 2]."""
+    if not math.isfinite(u):
+        return 0, math.nan
+    i = min(max(math.floor(u), 0.0), n - 2.0)
+    t = min(max(u - i, -1.0), 2.0)
+    return int(i), t
+
+
+@njit(**_JIT)
+def grid_tensor(x, y, l11, l12, l22, x0, y0, dx, dy):
+    """:meth:`curvimesh.gradation.GradedGrid.components` at one point: the cubic B-spline
+    of the padded node logarithms ``l11, l12, l22`` ``(nx + 2, ny + 2)``, exponentiated."""
+    nx, ny = l11.shape[0] - 2, l11.shape[1] - 2
+    i, t = _cell((x - x0) / dx, nx)
+    j, u = _cell((y - y0) / dy, ny)
+    bx = bspline_basis(t)
+    by = bspline_basis(u)
+    s11 = s12 = s22 = 0.0
+    for a in range(4):
+        r11 = r12 = r22 = 0.0
+        for b in range(4):
+            r11 += by[b] * l11[i + a, j + b]
+            r12 += by[b] * l12[i + a, j + b]
+            r22 += by[b] * l22[i + a, j + b]
+        s11 += bx[a] * r11
+        s12 += bx[a] * r12
+        s22 += bx[a] * r22
+    return exp_tensor(s11, s12, s22)
+
+
+#: Node arrays of graded grids by key, for generated metric code (:func:`grid_array`).
+GRIDS: dict[str, NDArray] = {}
+
+
+def grid_array(key: str) -> NDArray:
+    """The array registered as ``GRIDS[key]`` (generated code binds it to a global, which
+    numba then compiles in as a constant: a key names its content, a hash of its bytes)."""
+    return GRIDS[key]
+
+
 #: :data:`HELPERS` with the interpolation metric's (appended here, beside their section).
 HELPERS = {
     **HELPERS,
@@ -1524,4 +1661,6 @@ HELPERS = {
     "hessian_shape": hessian_shape,
     "interpolation_tensor": interpolation_tensor,
     "central_differences": central_differences,
+    "grid_tensor": grid_tensor,
+    "grid_array": grid_array,
 }

@@ -19,7 +19,7 @@ The metric forms (SPEC section 2):
   about N vertices, sizes clamped to [HMIN, HMAX]; not symbolic: built and
   differentiated numerically by :class:`curvimesh.interpolation.InterpolationMetric`.
 * ``intersection: [ITEM, ...]`` → the metric intersection of the items,
-  folded left (simultaneous reduction; see :func:`intersect`).
+  folded left (simultaneous reduction; see :func:`curvimesh.tensors.intersect`).
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ from curvimesh import kernels
 from curvimesh.errors import ExpressionError, MetricError
 from curvimesh.expressions import FUNCTIONS, parse_expression, scalar_function, smooth_minmax
 from curvimesh.interpolation import InterpolationMetric, parse_interpolation
+from curvimesh.tensors import intersect_components, intersect_with_derivatives
 
 X, Y = sympy.symbols("x y", real=True)
 
@@ -64,102 +65,6 @@ ITEM_KEYS = ("parameters", "definitions")
 FORMS = ("isotropic", "eigen", "tensor", "interpolation", "intersection")
 RESERVED = frozenset({"x", "y", "pi", *FUNCTIONS})
 _IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
-
-
-# --------------------------------------------------------------------------- #
-# Numerical kernels on tensors                                                 #
-# --------------------------------------------------------------------------- #
-
-
-def intersect(m1: NDArray, m2: NDArray) -> NDArray:
-    """Metric intersection M1 ∩ M2 by simultaneous reduction, in closed form.
-
-    With the generalised eigenpairs M2 v = s M1 v (s real, positive), and
-    λ = vᵀ M1 v, the intersection keeps in each common direction the larger
-    of the two lengths' inverses (Frey & George, "Mesh generation", §10.6):
-
-        M = Σ_i max(1, s_i) / λ_i · (M1 v_i)(M1 v_i)ᵀ.
-
-    Works on real or complex arrays of shape (n, 2, 2) (complex inputs are
-    used for complex-step derivatives; branches are chosen on real parts).
-    If the two metrics are proportional (s1 = s2 = s) the result is max(1, s) M1.
-
-    >>> a = np.array([[[1.0, 0.0], [0.0, 4.0]]]); b = np.array([[[4.0, 0.0], [0.0, 1.0]]])
-    >>> intersect(a, b)[0].real.tolist()
-    [[4.0, 0.0], [0.0, 4.0]]
-    """
-    a = (m1[:, 0, 0].copy(), m1[:, 0, 1].copy(), m1[:, 1, 1].copy())
-    b = (m2[:, 0, 0].copy(), m2[:, 0, 1].copy(), m2[:, 1, 1].copy())
-    c11, c12, c22 = intersect_components(a, b)
-    out = np.empty(m1.shape, dtype=c11.dtype)
-    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c11, c12, c12, c22
-    return out
-
-
-def intersect_components(a: tuple, b: tuple) -> tuple[NDArray, NDArray, NDArray]:
-    """:func:`intersect` on components: a = (a11, a12, a22), b likewise, 1D arrays."""
-    a11, a12, a22 = a
-    b11, b12, b22 = b
-    # det(M2 - s M1) = qa s² + qb s + qc
-    qa = a11 * a22 - a12 * a12
-    qb = -(a11 * b22 + a22 * b11 - 2.0 * a12 * b12)
-    qc = b11 * b22 - b12 * b12
-    disc = qb * qb - 4.0 * qa * qc
-    # s1 ≈ s2 (M2 ≈ s M1): the eigenvectors are ill-conditioned, and rounding
-    # makes disc ~1e-16 qb² of either sign; the result is max(1, s) M1 there
-    degenerate = disc.real <= 1e-10 * (qb.real * qb.real)
-    root = np.sqrt(np.where(degenerate, 1.0, disc))
-    inv2qa = 0.5 / qa
-    o11 = o12 = o22 = 0.0
-    for sign in (-1.0, 1.0):
-        s = (sign * root - qb) * inv2qa
-        # null vector of A = M2 - s M1 (symmetric, singular)
-        c11, c12, c22 = b11 - s * a11, b12 - s * a12, b22 - s * a22
-        use_first = np.abs(c11.real) >= np.abs(c22.real)
-        v1 = np.where(use_first, -c12, c22)
-        v2 = np.where(use_first, c11, -c12)
-        w1 = a11 * v1 + a12 * v2  # M1 v
-        w2 = a12 * v1 + a22 * v2
-        lam = v1 * w1 + v2 * w2
-        f = np.where(s.real > 1.0, s, 1.0) / np.where(degenerate, 1.0, lam)
-        fw1 = f * w1
-        o11 = o11 + fw1 * w1
-        o12 = o12 + fw1 * w2
-        o22 = o22 + f * w2 * w2
-    if degenerate.any():
-        s0 = -qb * inv2qa
-        big = np.where(s0.real > 1.0, s0, 1.0)
-        o11 = np.where(degenerate, big * a11, o11)
-        o12 = np.where(degenerate, big * a12, o12)
-        o22 = np.where(degenerate, big * a22, o22)
-    return o11, o12, o22
-
-
-def intersect_with_derivatives(a: tuple, da: list, b: tuple, db: list) -> tuple[tuple, list]:
-    """Intersection of components a, b and its derivatives, by the complex-step method.
-
-    ``a`` = (a11, a12, a22) and ``da[k]`` its derivatives along x_k (likewise
-    b, db). The intersection is not smooth where the choice of max(1, s_i)
-    switches or where s1 = s2; everywhere else it is an analytic function of
-    (M1, M2), so its directional derivative along (∂M1/∂x_k, ∂M2/∂x_k) is
-    Im I(M1 + i h ∂M1, M2 + i h ∂M2) / h exactly (to rounding) with h = 1e-30
-    (Squire & Trapp 1998). Where it is not smooth this gives the derivative
-    of the branch selected at the point, a one-sided derivative, which is
-    what a geodesic integrator stepping across the kink needs. The real part
-    of a complex step is the value itself (h² is far below rounding).
-
-    The reference for :func:`curvimesh.kernels.intersect_d`, which computes the
-    same derivatives on the compiled path in forward mode.
-    """
-    h = 1e-30
-    out = []
-    for k in range(2):
-        z = intersect_components(
-            tuple(ai + 1j * h * di for ai, di in zip(a, da[k], strict=True)),
-            tuple(bi + 1j * h * di for bi, di in zip(b, db[k], strict=True)),
-        )
-        out.append(tuple(zi.imag / h for zi in z))
-    return tuple(zi.real for zi in z), out
 
 
 # --------------------------------------------------------------------------- #

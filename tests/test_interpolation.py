@@ -326,6 +326,15 @@ metric:
     assert comp.sizes == pytest.approx((2e-4, 1.0))
     assert comp.box == (0.0, 0.0, 2.0, 1.0)
     assert comp.key == "metric.interpolation"
+    assert comp.gradation == 3.0
+
+
+@pytest.mark.parametrize(
+    ("text", "value"), [("off", None), ("'off'", None), ("null", None), ("1.5", 1.5)]
+)
+def test_gradation_is_a_number_or_off(text, value):
+    fld = load_metric_text(interpolation_yaml(EXP_SUM, gradation=text))
+    assert fld.components[0].gradation == value
 
 
 def test_the_form_in_an_intersection():
@@ -357,6 +366,10 @@ metric:
         ("{function: x.real, vertices: 100}", ".function", "attribute"),
         ("{function: z**3, vertices: 100}", ".function", "z"),
         ("{function: x**3, vertices: 1e9, sizes: [0.01, 0.5]}", ".vertices", "cannot be reached"),
+        ("{function: x**3, vertices: 100, gradation: 1}", ".gradation", "> 1 or off"),
+        ("{function: x**3, vertices: 100, gradation: steep}", ".gradation", "steep"),
+        ("{function: x**3, vertices: 100, gradation: true}", ".gradation", "number"),
+        ("{function: x**3, vertices: 100, gradation: .inf}", ".gradation", "> 1 or off"),
         ("[x**3, 100]", "metric.interpolation", "mapping"),
     ],
 )

@@ -27,10 +27,10 @@ from curvimesh.metric import (
     MetricField,
     X,
     Y,
-    intersect_with_derivatives,
     load_metric,
     load_metric_text,
 )
+from curvimesh.tensors import intersect_with_derivatives
 
 METRICS = Path(__file__).resolve().parent.parent / "metrics"
 EXAMPLES = ["toy", "three_toys", "concentric", "quartic", "front", "circular_layer"]

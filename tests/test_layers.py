@@ -14,6 +14,8 @@ LAYERS = {
     "__init__": 0,
     "errors": 0,
     "kernels": 0,
+    "tensors": 0,
+    "gradation": 1,
     "expressions": 1,
     "bezier": 1,
     "spatial": 1,
