@@ -16,11 +16,11 @@ from curvimesh.metric import (
     UNIT_TRIANGLE_AREA,
     density_integral,
     frame_turn,
-    intersect,
     load_metric,
     load_metric_text,
     sharpest_turn,
 )
+from curvimesh.tensors import intersect
 
 METRICS = Path(__file__).resolve().parent.parent / "metrics"
 
