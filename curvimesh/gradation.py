@@ -78,12 +78,16 @@ def grid_shape(
 ) -> tuple[int, int]:
     """Nodes (nx, ny) along x and y of a grid of the box with about equal spacings.
 
+    At least 4 nodes along each side, so a very long box gets a grid of 4 rows:
+
     >>> grid_shape((0.0, 0.0, 1.0, 1.0)), grid_shape((0.0, 0.0, 4.0, 1.0))
     ((256, 256), (512, 128))
+    >>> grid_shape((0.0, 0.0, 1e6, 1.0)), grid_shape((0.0, 0.0, 1.0, 1e6))
+    ((16384, 4), (4, 16384))
     """
     xmin, ymin, xmax, ymax = box
     aspect = (xmax - xmin) / (ymax - ymin)
-    nx = max(4, math.floor(math.sqrt(max_nodes * aspect)))
+    nx = max(4, min(max_nodes // 4, math.floor(math.sqrt(max_nodes * aspect))))
     ny = max(4, math.floor(max_nodes / nx))
     return nx, ny
 

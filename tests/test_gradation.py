@@ -178,11 +178,12 @@ def test_the_grid_spline_reproduces_linear_logarithms_and_its_twin_agrees():
 
 
 def test_grid_shapes_keep_the_node_arrays_under_a_megabyte():
-    for box in ((0, 0, 1, 1), (0, 0, 10, 1), (-2, -2, 2, 2), (0, 0, 1, 7)):
+    for box in ((0, 0, 1, 1), (0, 0, 10, 1), (-2, -2, 2, 2), (0, 0, 1, 7), (0, 0, 1e6, 1)):
         nx, ny = grid_shape(box)
         assert (nx + 2) * (ny + 2) * 8 <= 1_000_000
         dx, dy = (box[2] - box[0]) / (nx - 1), (box[3] - box[1]) / (ny - 1)
-        assert dx == pytest.approx(dy, rel=0.05)
+        if min(nx, ny) > 4:  # square cells but where a side is down to its 4 nodes
+            assert dx == pytest.approx(dy, rel=0.05)
 
 
 # --------------------------------------------------------------------------- #
