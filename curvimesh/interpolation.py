@@ -723,8 +723,8 @@ def parse_interpolation(
 
     ``body`` is the parsed YAML mapping with keys :data:`KEYS` (``function``
     and ``vertices`` required; ``degree`` 2, ``norm`` 2, ``sizes``
-    [1e-4 L, L/2] and ``gradation`` :data:`GRADATION` by default, L the longest
-    side of the box; ``gradation: off`` for none). ``names`` are
+    [1e-4 L, W/2] and ``gradation`` :data:`GRADATION` by default, L the longest
+    side of the box and W the shortest; ``gradation: off`` for none). ``names`` are
     the parameters and definitions in scope. Raises :class:`MetricError`
     ``"{source}: {key}.{subkey}: message"`` on one line.
     """
@@ -765,8 +765,11 @@ def parse_interpolation(
         raise fail("vertices", str(exc)) from None
     if not (math.isfinite(vertices) and vertices >= 1):
         raise fail("vertices", f"must be a positive number, got {body['vertices']!r}")
+    # HMAX: half the shorter side (a longer size than the box's width asks for edges
+    # the box cannot hold); HMIN: 1e-4 of the longer side
     length = max(box[2] - box[0], box[3] - box[1])
-    raw_sizes = body.get("sizes", [1e-4 * length, 0.5 * length])
+    width = min(box[2] - box[0], box[3] - box[1])
+    raw_sizes = body.get("sizes", [1e-4 * length, 0.5 * width])
     if not isinstance(raw_sizes, list) or len(raw_sizes) != 2:
         raise fail("sizes", f"must be a list [HMIN, HMAX], got {raw_sizes!r}")
     try:

@@ -323,7 +323,7 @@ metric:
     (comp,) = fld.components
     assert isinstance(comp, InterpolationMetric)
     assert (comp.degree, comp.norm, comp.vertices) == (2, 2.0, 1500.0)
-    assert comp.sizes == pytest.approx((2e-4, 1.0))
+    assert comp.sizes == pytest.approx((2e-4, 0.5))  # 1e-4 of the long side, half the short
     assert comp.box == (0.0, 0.0, 2.0, 1.0)
     assert comp.key == "metric.interpolation"
     assert comp.gradation == 3.0
