@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,7 +57,15 @@ from numpy.typing import NDArray
 from curvimesh import kernels
 from curvimesh.tensors import exp_components, log_components
 
-__all__ = ["MAX_NODES", "GradedGrid", "bspline_basis", "grade", "graded_grid", "grid_shape"]
+__all__ = [
+    "MAX_NODES",
+    "GradedGrid",
+    "bspline_basis",
+    "grade",
+    "graded_grid",
+    "grid_nodes",
+    "grid_shape",
+]
 
 #: Most nodes of a background grid. Each of its three node arrays (padded by one
 #: node on every side) stays under 1 MB, the size up to which numba compiles a
@@ -210,21 +217,34 @@ def grade(g: NDArray, spacing: tuple[float, float], growth: float) -> tuple[NDAr
     return out, int(sweeps)
 
 
+def grid_nodes(
+    box: tuple[float, float, float, float], max_nodes: int = MAX_NODES
+) -> tuple[NDArray, tuple[float, float]]:
+    """The nodes ``(nx ny, 2)`` of the box's grid (:func:`grid_shape`), node (i, j) in
+    row i ny + j, and the spacing (dx, dy)."""
+    nx, ny = grid_shape(box, max_nodes)
+    dx, dy = _spacing(box, nx, ny)
+    gx, gy = np.meshgrid(box[0] + dx * np.arange(nx), box[1] + dy * np.arange(ny), indexing="ij")
+    return np.column_stack([gx.ravel(), gy.ravel()]), (dx, dy)
+
+
+def _spacing(box: tuple[float, float, float, float], nx: int, ny: int) -> tuple[float, float]:
+    """(dx, dy) of a grid of nx × ny nodes spanning the box."""
+    return (box[2] - box[0]) / (nx - 1), (box[3] - box[1]) / (ny - 1)
+
+
 def graded_grid(
     box: tuple[float, float, float, float],
-    tensor: Callable[[NDArray], tuple[NDArray, NDArray, NDArray]],
+    nodes: tuple[NDArray, NDArray, NDArray],
     gradation: float,
     *,
     max_nodes: int = MAX_NODES,
 ) -> GradedGrid:
-    """The metric ``tensor`` (points ``(n, 2)`` → (g11, g12, g22)) sampled on a grid of
-    the box (:func:`grid_shape`) and graded with γ = ``gradation`` > 1."""
-    xmin, ymin, xmax, ymax = box
+    """The metric (g11, g12, g22) ``nodes``, each ``(nx ny,)`` at :func:`grid_nodes`,
+    graded with γ = ``gradation`` > 1."""
     nx, ny = grid_shape(box, max_nodes)
-    dx, dy = (xmax - xmin) / (nx - 1), (ymax - ymin) / (ny - 1)
-    gx, gy = np.meshgrid(xmin + dx * np.arange(nx), ymin + dy * np.arange(ny), indexing="ij")
-    nodes = np.column_stack([gx.ravel(), gy.ravel()])
-    g = np.stack(tensor(nodes), axis=-1).reshape(nx, ny, 3)
-    graded, _ = grade(g, (dx, dy), gradation - 1.0)
+    spacing = _spacing(box, nx, ny)
+    g = np.stack(nodes, axis=-1).reshape(nx, ny, 3)
+    graded, _ = grade(g, spacing, gradation - 1.0)
     logs = np.stack(log_components(graded[..., 0], graded[..., 1], graded[..., 2]))
-    return GradedGrid((xmin, ymin), (dx, dy), _pad_linear(logs))
+    return GradedGrid((box[0], box[1]), spacing, _pad_linear(logs))

@@ -122,7 +122,7 @@ from scipy.optimize import brentq
 from curvimesh import kernels
 from curvimesh.errors import ExpressionError, InputError, MetricError
 from curvimesh.expressions import parse_expression, scalar_function, smooth_minmax
-from curvimesh.gradation import GradedGrid, graded_grid
+from curvimesh.gradation import GradedGrid, graded_grid, grid_nodes
 from curvimesh.tensors import intersect_components
 
 __all__ = [
@@ -276,17 +276,19 @@ def hessian_shape(coef: NDArray, *, max_aspect: float) -> tuple[NDArray, NDArray
     return cos, sin, np.maximum(x_log, floor), np.maximum(y_log, floor)
 
 
-def tensor_from_frame(cos: NDArray, sin: NDArray, l1: NDArray, l2: NDArray) -> NDArray:
-    """Metric ``(n, 2, 2)`` with eigenvalue l1 along (cos φ, sin φ) and l2 across it.
+def tensor_from_frame(
+    cos: NDArray, sin: NDArray, l1: NDArray, l2: NDArray
+) -> tuple[NDArray, NDArray, NDArray]:
+    """Metric (g11, g12, g22) with eigenvalue l1 along (cos φ, sin φ) and l2 across it.
 
     The sizes along the two directions are l1^(−1/2) and l2^(−1/2):
 
     >>> g = tensor_from_frame(np.array([0.0]), np.array([1.0]), np.array([4.0]), np.array([16.0]))
-    >>> (g[0] + 0.0).tolist()
-    [[16.0, 0.0], [0.0, 4.0]]
+    >>> [float(v[0]) + 0.0 for v in g]
+    [16.0, 0.0, 4.0]
     """
     cc, ss, cs = cos * cos, sin * sin, (l1 - l2) * cos * sin
-    return np.stack([l1 * cc + l2 * ss, cs, cs, l1 * ss + l2 * cc], axis=-1).reshape(-1, 2, 2)
+    return l1 * cc + l2 * ss, cs, l1 * ss + l2 * cc
 
 
 # --------------------------------------------------------------------------- #
@@ -482,8 +484,7 @@ class InterpolationMetric:
         with np.errstate(invalid="ignore"):  # inf − inf where a derivative is infinite: NaN
             common = log_scale + self.exponents[1] * (x_log + y_log)
             mu = np.exp(np.clip([common + x_log, common + y_log], lo, hi))
-        cc, ss, cs = cos * cos, sin * sin, (mu[0] - mu[1]) * cos * sin
-        return mu[0] * cc + mu[1] * ss, cs, mu[0] * ss + mu[1] * cc
+        return tensor_from_frame(cos, sin, mu[0], mu[1])
 
     def _solve_scale(self) -> float:
         """log D giving the metric ``vertices`` ideal vertices (module, step 3), and, with
@@ -540,12 +541,12 @@ class InterpolationMetric:
         quadrature rule and the shape Q at its points.
         """
         target = math.log(float(self.vertices))
+        node_shape = self.shape(grid_nodes(self.box)[0])  # the grid's nodes: Q once
         previous = None
         slope = 1.0
         for _ in range(8):
-            grid = graded_grid(
-                self.box, lambda p, s=log_scale: self._components(*self.shape(p), s), self.gradation
-            )
+            nodes = self._components(*node_shape, log_scale)
+            grid = graded_grid(self.box, nodes, self.gradation)
             comps = self._components(*shape, log_scale)
             g11, g12, g22 = intersect_components(comps, grid.components(pts))
             count = _VERTICES_PER_AREA * float(np.dot(np.sqrt(g11 * g22 - g12 * g12), w))

@@ -1525,7 +1525,7 @@ def _one_sided(g, p, m, h):
 @njit(**_JIT)
 def span_metric(g11, g12, g22, grow):
     """The SPD tensor (g11, g12, g22) with its sizes hᵢ = λᵢ^(−1/2) grown to hᵢ + grow,
-    its eigenvectors kept (:func:`curvimesh.gradation.span_components`).
+    its eigenvectors kept (the span of :mod:`curvimesh.gradation`).
 
     λ₁ = m + r (m, r the mean and half-difference radius of the eigenvalues) along
     (cos φ, sin φ) of :func:`shape_frame`, λ₂ = det / λ₁ across it.

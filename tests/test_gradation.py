@@ -19,7 +19,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from curvimesh import kernels
-from curvimesh.gradation import GradedGrid, _pad_linear, grade, graded_grid, grid_shape
+from curvimesh.gradation import (
+    GradedGrid,
+    _pad_linear,
+    grade,
+    graded_grid,
+    grid_nodes,
+    grid_shape,
+)
 from curvimesh.interpolation import InterpolationMetric, X, Y
 from curvimesh.tensors import exp_components, log_components
 
@@ -254,15 +261,12 @@ def test_the_graded_metric_compiles_to_the_same_values(graded_f1):
     assert np.all(np.abs(dg - dg0).max(axis=(1, 2, 3)) <= 1e-6 * mag / comp.step)
 
 
-def test_graded_grids_of_a_metric_function():
-    # graded_grid samples a tensor function at the nodes of the box's grid
+def test_graded_grids_of_a_metric_on_the_grid_nodes():
+    # graded_grid grades the metric at the nodes of the box's grid (grid_nodes)
     box = (0.0, 0.0, 2.0, 1.0)
-
-    def field(p):
-        h = np.where(p[:, 0] < 1.0, 0.01, 0.5)  # a jump at x = 1
-        return h**-2, 0.0 * h, h**-2
-
-    grid = graded_grid(box, field, 1.5, max_nodes=2048)
+    nodes, _ = grid_nodes(box, 2048)
+    h = np.where(nodes[:, 0] < 1.0, 0.01, 0.5)  # a jump at x = 1
+    grid = graded_grid(box, (h**-2, 0.0 * h, h**-2), 1.5, max_nodes=2048)
     nx, ny = grid.shape
     assert (nx, ny) == grid_shape(box, 2048)
     dx = grid.spacing[0]
