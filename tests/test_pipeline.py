@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, Phase, example, given, settings
 from hypothesis import strategies as st
+from scipy.integrate import quad
 
 from curvimesh import adapt as pipeline
 from curvimesh.bezier import jacobian_bezier
@@ -85,6 +86,39 @@ def test_boundary_edges_are_quasi_unit_and_midnodes_halve_them():
     half = parabola_length(fld, v, bnd.midnodes)
     np.testing.assert_allclose(half, lengths / 2, rtol=1e-4)
     np.testing.assert_allclose(halving_points(fld, v, nxt), bnd.midnodes, atol=1e-6)
+
+
+# a wall layer 1000:1 whose size across grows 1000-fold within 0.5 of the wall
+WALL = """
+domain: {box: [[0, 0], [1.6, 1]]}
+definitions: {hy: "0.08 - (0.08 - 0.00008)*exp(-y/0.15)"}
+metric: {eigen: {sizes: [0.08, hy], angle: 0}}
+"""
+
+
+def test_boundary_edges_across_a_steep_wall_layer_are_equal_in_exact_lengths():
+    """On the sides x = 0 and x = 1.6 the metric length from y₀ to y₁ is
+    ∫ dy / h(y), integrated here by scipy's adaptive quadrature; every edge of a
+    side has the same length (the box corners are right angles in this metric)."""
+    fld = load_metric_text(WALL)
+    bnd = discretize_box(fld, target=0.98)
+    v, nxt = bnd.vertices, np.roll(bnd.vertices, -1, axis=0)
+
+    def h(y: float) -> float:
+        return 0.08 - (0.08 - 0.00008) * math.exp(-y / 0.15)
+
+    for side in (1, 3):
+        idx = np.flatnonzero(bnd.sides == side)
+        exact = np.array(
+            [
+                quad(lambda y: 1.0 / h(y), *sorted((v[i, 1], nxt[i, 1])), epsrel=1e-11, limit=200)[
+                    0
+                ]
+                for i in idx
+            ]
+        )
+        assert len(idx) == round(sum(exact) / 0.98)
+        np.testing.assert_allclose(exact, sum(exact) / len(idx), rtol=1e-4)
 
 
 def test_constant_metric_mesh_is_unit_and_near_the_ideal_count(constant_result):
