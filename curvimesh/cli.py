@@ -172,6 +172,10 @@ STAGE_HELP = {
         "No vertex shifts at the edges left longer than 1.4 and at triangles of quality < 0.3."
     ),
     "remove": "No vertex removals at the triangles left below quality 0.3.",
+    "repeat": (
+        "No repeated passes of the swaps and the clean-up stages while edges longer than "
+        "1.4 or triangles below quality 0.3 are left."
+    ),
     "fit": "No edge nodes fitted to the function of an interpolation metric.",
 }
 
@@ -439,11 +443,12 @@ def adapt(
     The stages beyond the paper's method (gap filling, vertex relocation,
     intrinsic flips where the metric's directions turn fast, vertex insertion,
     edge splits, re-curving, swaps for lengths, vertex shifts, vertex removals,
-    and for an interpolation metric edge nodes fitted to its function) run by
-    default; --no-fill, --no-relocate, --no-intrinsic, --no-insert, --no-split,
-    --no-recurve, --no-length-swaps, --no-shift, --no-remove and --no-fit turn them
-    off, so that the paper's method alone is `--no-fill --no-relocate --no-intrinsic
-    --no-insert --no-split --no-recurve --no-length-swaps --no-shift --no-remove
+    repeated passes of these where defects remain, and for an interpolation metric
+    edge nodes fitted to its function) run by default; --no-fill, --no-relocate,
+    --no-intrinsic, --no-insert, --no-split, --no-recurve, --no-length-swaps,
+    --no-shift, --no-remove, --no-repeat and --no-fit turn them off, so that the
+    paper's method alone is `--no-fill --no-relocate --no-intrinsic --no-insert
+    --no-split --no-recurve --no-length-swaps --no-shift --no-remove --no-repeat
     --no-fit`.
     """
     fld = load_metric(metric_path)

@@ -43,6 +43,7 @@ def test_each_row_is_the_mesh_of_adapt_with_those_stages(tmp_path):
         "length_swaps",
         "shift",
         "remove",
+        "repeat",
     )
     # row i has the first i stages on (row 0: the paper's method)
     for i, row in enumerate(rows):

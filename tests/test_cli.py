@@ -185,6 +185,7 @@ def test_check_metric_prints_the_ideal_count():
         ("--no-length-swaps",),
         ("--no-shift",),
         ("--no-remove",),
+        ("--no-repeat",),
         (
             "--no-fill",
             "--no-relocate",
@@ -194,6 +195,7 @@ def test_check_metric_prints_the_ideal_count():
             "--no-length-swaps",
             "--no-shift",
             "--no-remove",
+            "--no-repeat",
         ),
     ],
 )
@@ -208,7 +210,17 @@ def test_stage_flags_give_the_library_mesh_with_those_stages_off(workdir, flags)
     )
     assert r.exit_code == 0, r.output
     off = {f.removeprefix("--no-").replace("-", "_") for f in flags}
-    stages = ("fill", "relocate", "insert", "split", "recurve", "length_swaps", "shift", "remove")
+    stages = (
+        "fill",
+        "relocate",
+        "insert",
+        "split",
+        "recurve",
+        "length_swaps",
+        "shift",
+        "remove",
+        "repeat",
+    )
     opt = pipeline.AdaptOptions(**{k: k not in off for k in stages})
     want = pipeline.adapt(load_metric(workdir / "m.yaml"), opt).mesh
     got = read_mesh(out)

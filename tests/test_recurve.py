@@ -118,7 +118,8 @@ def _shortest_alpha(g, x0: np.ndarray, x1: np.ndarray) -> float:
 def test_straight_edges_of_the_half_plane_go_to_their_shortest_parabolas():
     fld = load_metric_text(HALF_PLANE)
     straight = _grid(fld, 6, shake=0.1)
-    res = recurve(fld, straight)
+    # edges of 0.3 to 0.8: no length floor, so that every edge may reach its optimum
+    res = recurve(fld, straight, min_length=0.0)
     out = res.mesh
     slow_check(out)
     e = _interior(out)
@@ -188,6 +189,22 @@ def test_recurving_a_curved_mesh_keeps_its_optimal_nodes_and_shortens_the_others
     assert (la[~optimal] < lb[~optimal] * (1 - 1e-6)).any()
 
 
+def test_recurving_never_makes_an_edge_shorter_than_the_length_floor(front_case):
+    """With the floor at the median straight length, every edge ends at least
+    min(floor, its length before); without it (floor 0), some of those edges end below."""
+    fld, _, straight, _ = front_case
+    before = _lengths(fld, straight)
+    floor = float(np.median(before))
+    free = _lengths(fld, recurve(fld, straight, min_length=0.0).mesh)
+    assert (free < np.minimum(floor, before) * (1 - 1e-6)).any()
+    res = recurve(fld, straight, min_length=floor)
+    slow_check(res.mesh)
+    after = _lengths(fld, res.mesh)
+    assert res.moved > 0
+    assert (after >= np.minimum(floor, before) * (1 - 1e-6)).all()
+    assert (after <= before * (1 + 1e-9)).all()
+
+
 def _quality(fld, mesh: Mesh) -> np.ndarray:
     lengths = edge_lengths(fld, np.asarray(mesh.points), mesh.edges, mesh.edge_mid)
     return quality_from(metric_areas(fld, mesh.points[mesh.triangles]), lengths[mesh.tri_edges])
@@ -196,7 +213,8 @@ def _quality(fld, mesh: Mesh) -> np.ndarray:
 def test_every_edge_left_short_of_its_optimum_is_blocked(front_case):
     """The fixed point, checked edge by edge in a plain loop: moving any node that is not
     at its optimum to a larger fraction would make a triangle invalid, the edge no
-    shorter, or the pair's worse quality below min(its own, max(0.3, the mesh's worst))."""
+    shorter, the edge shorter than min(0.7, its length), or the pair's worse quality
+    below min(its own, max(0.3, the mesh's worst))."""
     fld, _, _, res = front_case
     out = res.mesh
     assert recurve(fld, out).moved == 0
@@ -222,7 +240,10 @@ def test_every_edge_left_short_of_its_optimum_is_blocked(front_case):
             tri = trial[out.triangles[[t1, t2]]]
             if not valid_exact(tri).all():
                 continue
-            if _lengths(fld, m)[k] >= length[k] * (1 - 1e-6):
+            new_length = _lengths(fld, m)[k]
+            if new_length >= length[k] * (1 - 1e-6):
+                continue
+            if new_length < min(0.7, length[k]) * (1 + 1e-6):
                 continue
             assert min(_quality(fld, m)[[t1, t2]]) < floor + 1e-3
     assert blocked > 0
