@@ -18,8 +18,8 @@ For every metric file, eleven meshes, each stage added to the previous ones:
 * ``+ length swaps``: and swaps for edge lengths (:func:`curvimesh.swap.swap`);
 * ``+ shift``: and vertices moved at the edges left long and at the
   triangles of quality below 0.3 (:mod:`curvimesh.shift`);
-* ``+ remove``: and vertices of the triangles still below 0.3 removed
-  (:mod:`curvimesh.remove`);
+* ``+ remove``: and vertices of the triangles still below 0.3 and of the edges
+  still longer than 1.4 removed (:mod:`curvimesh.remove`);
 * ``+ repeat``: and the swaps and clean-up stages repeated while edges longer
   than 1.4 or triangles below quality 0.3 are left
   (:func:`curvimesh.adapt.repeat_passes`): every stage on, the default ``adapt``.
@@ -196,9 +196,9 @@ def section(results: list[dict], seed: int) -> str:
         "edge nodes moved back towards their shortest parabolas, *+ length swaps* swaps "
         "for edge lengths, *+ shift* vertices moved at the edges left long and at the "
         "triangles of quality below 0.3, *+ remove* vertices of the triangles still below "
-        "0.3 removed, *+ repeat* the swaps and clean-up stages repeated while edges longer "
-        "than 1.4 or triangles below quality 0.3 are left (the default `adapt`, the meshes "
-        "above). "
+        "0.3 and of the edges still longer than 1.4 removed, *+ repeat* the swaps and "
+        "clean-up stages repeated while edges longer than 1.4 or triangles below quality "
+        "0.3 are left (the default `adapt`, the meshes above). "
         "Seconds are the whole adaptation of each row.\n\n"
         f"{table(results)}\n{END}\n"
     )

@@ -171,7 +171,10 @@ STAGE_HELP = {
     "shift": (
         "No vertex shifts at the edges left longer than 1.4 and at triangles of quality < 0.3."
     ),
-    "remove": "No vertex removals at the triangles left below quality 0.3.",
+    "remove": (
+        "No vertex removals at the triangles left below quality 0.3 and at the edges "
+        "left longer than 1.4."
+    ),
     "repeat": (
         "No repeated passes of the swaps and the clean-up stages while edges longer than "
         "1.4 or triangles below quality 0.3 are left."

@@ -136,3 +136,26 @@ def test_boundary_vertices_and_high_valence_are_kept():
     mesh = to_p2_straight(Mesh(pts, tris, BOX))
     res = remove_vertices(fld, mesh, min_quality=1.01)  # every triangle counts as bad
     assert res.removed == 0
+
+
+def test_the_end_of_a_long_edge_is_removed_when_its_ring_has_a_unit_diagonal():
+    """A 60° rhombus of unit sides (short diagonal 1, long one √3) with a vertex v
+    inside, 0.32 from a sharp corner: v's edge to the far corner is 1.412, none of
+    its triangles is flat (q ≥ 0.33). Removing v and joining the short diagonal
+    leaves two equilateral triangles; the long diagonal (1.73) is refused."""
+    fld = load_metric_text("domain: {box: [[0, -0.5], [1.8, 0.5]]}\nmetric: {isotropic: 1}\n")
+    h = math.sqrt(3) / 2
+    pts = np.array([[0.0, 0.0], [h, -0.5], [2 * h, 0.0], [h, 0.5], [0.32, 0.0]])
+    star = to_p2_straight(Mesh(pts, np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]]), BOX))
+    lens = edge_lengths(fld, np.asarray(star.points), star.edges, star.edge_mid)
+    assert lens.max() == pytest.approx(2 * h - 0.32) and lens.max() > 1.4
+    assert quality(fld, star).min() >= 0.33
+    assert remove_vertices(fld, star, long_edges=False).removed == 0
+    res = remove_vertices(fld, star)
+    assert res.removed == 1
+    corners = np.asarray(res.mesh.points)[res.mesh.triangles[:, :3]]
+    assert {frozenset(map(tuple, np.round(c, 12))) for c in corners} == {
+        frozenset(map(tuple, np.round(pts[list(t)], 12))) for t in ((0, 1, 3), (1, 2, 3))
+    }
+    np.testing.assert_allclose(quality(fld, res.mesh), 1.0, atol=1e-9)
+    assert valid_exact(np.asarray(res.mesh.points)[res.mesh.triangles]).all()
