@@ -324,6 +324,11 @@ class CompiledMetric:
 #: user's cache directory); ``off`` compiles in memory at every run.
 CACHE_ENV = "CURVIMESH_CACHE"
 
+#: Environment variable bounding the size of that directory, in megabytes (default
+#: :data:`CACHE_MAX_MB`): the least recently used metrics are deleted past it.
+CACHE_MAX_ENV = "CURVIMESH_CACHE_MAX_MB"
+CACHE_MAX_MB = 512
+
 
 def compile_metric(source: str, g_name: str, gd_name: str) -> CompiledMetric:
     """Compile generated Python source into the two scalar functions of a metric.
@@ -375,6 +380,9 @@ def _load_generated(source: str, entries: Mapping[str, str]) -> dict:
                 tmp = path.with_suffix(f".{os.getpid()}.tmp")
                 tmp.write_text(text)
                 os.replace(tmp, path)
+                prune_cache(directory, _cache_max_bytes(), keep=key)
+            else:
+                os.utime(path)  # its use time, for prune_cache
             name = f"curvimesh_metric_{key}"
             spec = importlib.util.spec_from_file_location(name, path)
             module = importlib.util.module_from_spec(spec)
@@ -396,6 +404,55 @@ def _cache_directory() -> Path | None:
         return Path(env)
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "curvimesh"
+
+
+def _cache_max_bytes() -> int:
+    try:
+        mb = float(os.environ.get(CACHE_MAX_ENV, CACHE_MAX_MB))
+    except ValueError:
+        mb = CACHE_MAX_MB
+    return int(mb * 2**20)
+
+
+def prune_cache(directory: Path, max_bytes: int, *, keep: str | None = None) -> list[str]:
+    """Delete the least recently used compiled metrics of ``directory`` until its
+    metrics take at most ``max_bytes``; the keys deleted, oldest first.
+
+    A metric is the module ``metric_KEY.py`` and numba's files of it,
+    ``__pycache__/metric_KEY.*``; its use time is the module's modification
+    time, which :func:`compile_metric` refreshes at every load. The metric
+    ``keep`` (a KEY) stays whatever its size. Files another process deletes
+    meanwhile are skipped (a process that loses its metric compiles it again).
+    """
+    entries: dict[str, list[Path]] = {}
+    for f in [*directory.glob("metric_*"), *(directory / "__pycache__").glob("metric_*")]:
+        key = f.name.removeprefix("metric_").split(".", 1)[0]
+        entries.setdefault(key, []).append(f)
+
+    def stat(f: Path) -> tuple[int, float]:
+        try:
+            st = f.stat()
+        except OSError:
+            return 0, 0.0
+        return st.st_size, st.st_mtime
+
+    size = {k: sum(stat(f)[0] for f in fs) for k, fs in entries.items()}
+    used = {k: stat(directory / f"metric_{k}.py")[1] for k in entries}
+    total = sum(size.values())
+    deleted = []
+    for k in sorted(entries, key=lambda k: (used[k], k)):
+        if total <= max_bytes:
+            break
+        if k == keep:
+            continue
+        for f in entries[k]:
+            try:
+                f.unlink()
+            except OSError:
+                pass
+        total -= size[k]
+        deleted.append(k)
+    return deleted
 
 
 #: What the compiled code of a metric depends on besides its source: numba's

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -603,3 +604,35 @@ def test_void_key_binary_search_is_numpys_searchsorted():
     q = np.ascontiguousarray(queries).view(geo._PAIR_KEY).ravel()
     assert np.array_equal(geo._lower_bound(keys, q), np.searchsorted(keys, q))
     assert geo._lower_bound(keys, q[:0]).shape == (0,)
+
+
+def test_the_cache_loses_its_least_recently_used_metrics_past_its_size(tmp_path):
+    """Six fake metrics of 1,000 bytes in module and numba files, used at times 1..6;
+    a cap of 3,500 bytes keeps the three used last, and the one asked to be kept."""
+    (tmp_path / "__pycache__").mkdir()
+    for t in range(1, 7):
+        key = f"{t:024x}"
+        py = tmp_path / f"metric_{key}.py"
+        py.write_bytes(b"#" * 400)
+        (tmp_path / "__pycache__" / f"metric_{key}.field_g-5.py311.nbi").write_bytes(b"i" * 100)
+        (tmp_path / "__pycache__" / f"metric_{key}.field_g-5.py311.1.nbc").write_bytes(b"c" * 500)
+        os.utime(py, (t, t))
+    (tmp_path / "other.txt").write_bytes(b"x" * 10_000)  # not a metric: never counted
+    keep = f"{1:024x}"
+    deleted = kernels.prune_cache(tmp_path, 3_500, keep=keep)
+    assert deleted == [f"{t:024x}" for t in (2, 3, 4)]
+    left = sorted(p.name[7:31] for p in tmp_path.glob("metric_*.py"))
+    assert left == [f"{t:024x}" for t in (1, 5, 6)]
+    assert len(list((tmp_path / "__pycache__").iterdir())) == 6
+    assert (tmp_path / "other.txt").exists()
+    assert kernels.prune_cache(tmp_path, 2_500) == [keep]  # the oldest, no longer kept
+
+
+def test_loading_a_cached_metric_marks_it_as_used(tmp_path, monkeypatch):
+    monkeypatch.setenv(kernels.CACHE_ENV, str(tmp_path))
+    src = MetricField((Component((2 + X**2, sympy.Integer(0), 2 + Y**2)),)).scalar_source
+    kernels.compile_metric(src, "field_g", "field_gd")
+    (module,) = tmp_path.glob("metric_*.py")
+    os.utime(module, (1, 1))
+    kernels.compile_metric(src, "field_g", "field_gd")
+    assert module.stat().st_mtime > 1e9
