@@ -544,30 +544,64 @@ def _fmt(g: NDArray) -> str:
 # --------------------------------------------------------------------------- #
 
 
-def density_integral(field_: MetricField, *, cells: int = 128, order: int = 4) -> float:
+def density_integral(
+    field_: MetricField,
+    *,
+    cells: int = 128,
+    order: int = 4,
+    rtol: float = 1e-5,
+    max_levels: int = 24,
+) -> float:
     """Metric area ∫_Ω sqrt(det g) dx over the box (SPEC section 4).
 
     Tensor-product Gauss–Legendre with ``order`` points per direction on a
-    ``cells`` × ``cells`` grid of the box.
+    ``cells`` × ``cells`` grid of the box, refined where it is not accurate:
+    each cell is integrated whole and as its four quarters, and a cell whose
+    two values differ by more than ``rtol`` × (the total) × (its share of the
+    box's area) is replaced by its quarters, at most ``max_levels`` times
+    (adaptive quadrature on a quadtree). A smooth field is not refined. A wall
+    layer whose size grows from 8e-5 within a few thousandths of the wall has
+    a metric area of 508.99; the uniform 128 × 128 grid gave 493.3, 3 % short.
     """
     xmin, ymin, xmax, ymax = field_.box
     xg, wg = np.polynomial.legendre.leggauss(order)
-    t = (xg + 1) / 2
-    ex = np.linspace(xmin, xmax, cells + 1)
-    ey = np.linspace(ymin, ymax, cells + 1)
-    px = (ex[:-1, None] + np.diff(ex)[:, None] * t[None, :]).ravel()
-    py = (ey[:-1, None] + np.diff(ey)[:, None] * t[None, :]).ravel()
-    wx = np.tile(wg / 2, cells) * np.repeat(np.diff(ex), order)
-    wy = np.tile(wg / 2, cells) * np.repeat(np.diff(ey), order)
-    gx, gy = np.meshgrid(px, py, indexing="ij")
-    w = np.outer(wx, wy).ravel()
-    total = 0.0
-    pts = np.column_stack([gx.ravel(), gy.ravel()])
-    for chunk in range(0, len(pts), 200_000):
-        g = field_.tensor(pts[chunk : chunk + 200_000])
-        det = g[:, 0, 0] * g[:, 1, 1] - g[:, 0, 1] ** 2
-        total += float(np.dot(np.sqrt(det), w[chunk : chunk + 200_000]))
-    return total
+    t, w = (xg + 1) / 2, wg / 2
+
+    def integrals(x0: NDArray, y0: NDArray, dx: NDArray, dy: NDArray) -> NDArray:
+        # (k,) Gauss integrals over the cells [x0, x0 + dx] × [y0, y0 + dy]
+        px = (x0[:, None, None] + dx[:, None, None] * t[None, :, None]).repeat(order, axis=2)
+        py = (y0[:, None, None] + dy[:, None, None] * t[None, None, :]).repeat(order, axis=1)
+        pts = np.column_stack([px.ravel(), py.ravel()])
+        dens = np.empty(len(pts))
+        for chunk in range(0, len(pts), 200_000):
+            g = field_.tensor(pts[chunk : chunk + 200_000])
+            dens[chunk : chunk + 200_000] = np.sqrt(g[:, 0, 0] * g[:, 1, 1] - g[:, 0, 1] ** 2)
+        return (dens.reshape(-1, order, order) @ w @ w) * dx * dy
+
+    ex, ey = np.linspace(xmin, xmax, cells + 1), np.linspace(ymin, ymax, cells + 1)
+    gx, gy = np.meshgrid(ex[:-1], ey[:-1], indexing="ij")
+    x0, y0 = gx.ravel(), gy.ravel()
+    dx, dy = np.full(len(x0), ex[1] - ex[0]), np.full(len(x0), ey[1] - ey[0])
+    whole = integrals(x0, y0, dx, dy)
+    box_area = (xmax - xmin) * (ymax - ymin)
+    total, scale = 0.0, None
+    for _ in range(max_levels):
+        # the four quarters of every cell, quarter q at (q // 2, q % 2) halves
+        hx, hy = dx / 2, dy / 2
+        qx = (x0[:, None] + hx[:, None] * np.array([0, 0, 1, 1])).ravel()
+        qy = (y0[:, None] + hy[:, None] * np.array([0, 1, 0, 1])).ravel()
+        qdx, qdy = np.repeat(hx, 4), np.repeat(hy, 4)
+        quarters = integrals(qx, qy, qdx, qdy).reshape(-1, 4)
+        finer = quarters.sum(axis=1)
+        if scale is None:
+            scale = abs(float(finer.sum()))
+        bad = np.abs(finer - whole) > rtol * scale * (dx * dy / box_area)
+        total += float(finer[~bad].sum())
+        if not bad.any():
+            return total
+        keep = np.repeat(bad, 4)
+        x0, y0, dx, dy, whole = qx[keep], qy[keep], qdx[keep], qdy[keep], quarters[bad].ravel()
+    return total + float(whole.sum())
 
 
 #: Area of the unit equilateral triangle, √3/4.
