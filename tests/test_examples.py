@@ -185,3 +185,12 @@ def test_the_repeated_passes_leave_no_worse_a_mesh_than_one_pass():
     rep = mesh_report(fld, again.mesh)
     assert rep["edge_length"]["max"] == pytest.approx(after.max_length, rel=1e-4)
     assert rep["quality"]["min"] == pytest.approx(after.min_quality, rel=1e-4)
+
+
+def test_wall_layer_steep_grows_exponentially_from_the_wall():
+    fld = load_metric(METRICS / "wall_layer_steep.yaml")
+    pts = inside(fld.box, 200)
+    g = fld.tensor(pts)
+    assert np.allclose(size_along(g, unit(np.zeros(len(pts)))), 0.08, rtol=1e-12)
+    across = size_along(g, unit(np.full(len(pts), math.pi / 2)))
+    assert np.allclose(across, 0.08 - (0.08 - 0.00008) * np.exp(-pts[:, 1] / 0.15), rtol=1e-10)
