@@ -229,7 +229,7 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
     mesh = res.mesh
     tally = _Tally(swaps=res.swaps, rounds=res.rounds)
     if opt.straight:
-        return SwapStage(mesh, tally.swaps, 0, tally.rounds)
+        return SwapStage(mesh, **vars(tally))
     mesh = _clean_up(fld, mesh, opt, tally)
     passes = 0
     if opt.repeat:
@@ -239,20 +239,7 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
     if opt.fit and function is not None:
         fr = fit_nodes(function, mesh)
         mesh, fitted = fr.mesh, fr.moves
-    t = tally
-    return SwapStage(
-        mesh,
-        t.swaps,
-        t.splits,
-        t.rounds,
-        t.inserted,
-        t.recurved,
-        fitted,
-        t.shifted,
-        t.removed,
-        flips,
-        passes,
-    )
+    return SwapStage(mesh, fitted=fitted, flips=flips, passes=passes, **vars(tally))
 
 
 def _clean_up(fld: MetricField, mesh: Mesh, opt: AdaptOptions, tally: _Tally) -> Mesh:

@@ -210,18 +210,7 @@ def test_stage_flags_give_the_library_mesh_with_those_stages_off(workdir, flags)
     )
     assert r.exit_code == 0, r.output
     off = {f.removeprefix("--no-").replace("-", "_") for f in flags}
-    stages = (
-        "fill",
-        "relocate",
-        "insert",
-        "split",
-        "recurve",
-        "length_swaps",
-        "shift",
-        "remove",
-        "repeat",
-    )
-    opt = pipeline.AdaptOptions(**{k: k not in off for k in stages})
+    opt = pipeline.AdaptOptions(**{k: k not in off for k in pipeline.STAGES})
     want = pipeline.adapt(load_metric(workdir / "m.yaml"), opt).mesh
     got = read_mesh(out)
     np.testing.assert_allclose(got.points, want.points, rtol=0, atol=1e-12)
