@@ -4,7 +4,7 @@ VENV    := .venv
 BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 
-.PHONY: demo test lint bench sample-runs convergence clean
+.PHONY: demo test lint bench sample-runs robustness convergence clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -31,6 +31,9 @@ bench: $(STAMP)
 sample-runs: $(STAMP)
 	$(BIN)/curvimesh batch metrics/*.yaml --out-dir sample_runs --jobs 2 --readme
 	$(BIN)/python bench/ablation.py metrics/*.yaml --out sample_runs --jobs 2
+
+robustness: $(STAMP)
+	$(BIN)/python bench/robustness.py
 
 convergence: $(STAMP)
 	$(BIN)/python bench/convergence.py --out sample_runs --vertices 500 1000 2000 4000 8000 16000 32000 50000
