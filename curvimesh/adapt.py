@@ -207,8 +207,9 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
     vertices of the edges still longer than 1.4 and of the triangles of quality
     below 0.3 moved (:mod:`curvimesh.shift`); then (unless ``options.remove`` is
     off) vertices of the triangles still below 0.3 and of the edges still longer
-    than 1.4 removed (:mod:`curvimesh.remove`). Then (unless ``options.repeat`` is off), while edges longer than 1.4 or
-    triangles of quality below 0.3 are left, at most :data:`REPEAT_PASSES` times:
+    than 1.4 removed (:mod:`curvimesh.remove`). Then (unless ``options.repeat`` is
+    off), while edges longer than 1.4 or triangles of quality below 0.3 are left,
+    at most :data:`REPEAT_PASSES` times:
     the last swaps again, on the mesh that the shifts and removals changed, and
     the clean-up stages again (see :func:`repeat_passes`). Last,
     when the metric is an ``interpolation``
