@@ -481,12 +481,18 @@ def frame_turn(g: NDArray, dg: NDArray, *, min_anisotropy: float = TURN_MIN_ANIS
     b = 2.0 * g[:, 0, 1]
     da = dg[:, 0, 0, :] - dg[:, 1, 1, :]
     db = 2.0 * dg[:, 0, 1, :]
-    lam, vec = np.linalg.eigh(g)
+    # the eigenpairs in closed form: λ = m ± r with m = tr g / 2, r = ½ sqrt(a² + b²);
+    # (cos φ, sin φ) belongs to the larger one, (−sin φ, cos φ) to the smaller
+    m = 0.5 * (g[:, 0, 0] + g[:, 1, 1])
+    r = 0.5 * np.hypot(a, b)
+    phi = 0.5 * np.arctan2(b, a)
+    c, s = np.cos(phi), np.sin(phi)
     with np.errstate(invalid="ignore", divide="ignore"):
         grad = (a[:, None] * db - b[:, None] * da) / (2.0 * (a * a + b * b))[:, None]
-        turn = np.abs(np.einsum("nk,nki->ni", grad, vec)) / np.sqrt(lam)
-        anisotropic = np.sqrt(lam[:, 1] / lam[:, 0]) >= min_anisotropy
-    out = np.where(anisotropic, turn.max(axis=1), 0.0)
+        big = np.abs(grad[:, 0] * c + grad[:, 1] * s) / np.sqrt(m + r)
+        small = np.abs(grad[:, 1] * c - grad[:, 0] * s) / np.sqrt(m - r)
+        anisotropic = np.sqrt((m + r) / (m - r)) >= min_anisotropy
+    out = np.where(anisotropic, np.maximum(big, small), 0.0)
     return np.where(np.isfinite(out), out, 0.0)
 
 

@@ -271,6 +271,16 @@ def test_frame_turn_of_concentric_rings_is_the_tangential_size_over_the_radius()
     assert not frame_turn(g, dg, min_anisotropy=21).any()
 
 
+def test_frame_turn_of_spokes_is_the_fine_tangential_size_over_the_radius():
+    """Sizes 0.1 radial and 0.005 tangential: the frame turns along the fine
+    direction only (a step of 0.005 turns it by 0.005 / r), the other eigenvector."""
+    fld = load_metric_text(RINGS.replace("[0.005, 0.1]", "[0.1, 0.005]"))
+    r = np.array([0.1, 0.2, 0.5, 0.9])
+    a = np.array([0.3, 2.0, -1.0, 4.0])
+    g, dg = fld.evaluate(np.column_stack([r * np.cos(a), r * np.sin(a)]), derivatives=True)
+    np.testing.assert_allclose(frame_turn(g, dg), 0.005 / r, rtol=1e-12)
+
+
 def test_frame_turn_is_zero_for_a_constant_metric_and_sharpest_turn_is_nearest_the_centre():
     const = load_metric_text(RINGS.replace("atan2(y, x)", "0.7"))
     g, dg = const.evaluate(const.sample_points(9), derivatives=True)
