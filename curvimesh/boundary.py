@@ -168,23 +168,29 @@ def refined_arclength(
     >>> bool(abs(cum[-1] - np.log(101.0)) < 1e-9), bool(np.diff(cum).max() <= 1 / 64)
     (True, True)
     """
-    s = np.linspace(0.0, 1.0, start + 1)
     xg, wg = np.polynomial.legendre.leggauss(3)
     d = b - a
-    for _ in range(max_rounds):
+
+    def cell_lengths(s: NDArray) -> NDArray:
         h = np.diff(s)
         t = (s[:-1, None] + h[:, None] * (xg[None, :] + 1) / 2).ravel()
         g = field.tensor(a[None, :] + t[:, None] * d[None, :])
         speed = np.sqrt(np.einsum("i,pij,j->p", d, g, d)).reshape(len(h), 3)
-        cell = (speed @ wg) * h / 2
+        return (speed @ wg) * h / 2
+
+    s = np.linspace(0.0, 1.0, start + 1)
+    cell = cell_lengths(s)
+    for _ in range(max_rounds):
         parts = np.maximum(1, np.ceil(cell * per_unit)).astype(np.int64)
         if (parts == 1).all() or parts.sum() > max_cells:
             break
         # cell i becomes parts[i] equal cells: s_i + (j / parts[i]) h_i, j = 0..parts[i]−1
+        h = np.diff(s)
         first = np.repeat(np.cumsum(parts) - parts, parts)
         j = np.arange(parts.sum()) - first
         cell_of = np.repeat(np.arange(len(h)), parts)
         s = np.append(s[:-1][cell_of] + h[cell_of] * j / parts[cell_of], 1.0)
+        cell = cell_lengths(s)
     return s, np.concatenate([[0.0], np.cumsum(cell)])
 
 

@@ -121,6 +121,26 @@ def test_boundary_edges_across_a_steep_wall_layer_are_equal_in_exact_lengths():
         np.testing.assert_allclose(exact, sum(exact) / len(idx), rtol=1e-4)
 
 
+def test_side_tables_cut_short_still_pair_each_parameter_with_its_length():
+    """With one refinement round only, the table is coarser but consistent: as many
+    lengths as parameters, increasing, the last one the side's exact length."""
+    from curvimesh.boundary import refined_arclength
+
+    fld = load_metric_text(WALL)
+
+    def h(y: float) -> float:
+        return 0.08 - (0.08 - 0.00008) * math.exp(-y / 0.15)
+
+    exact = quad(lambda y: 1.0 / h(y), 0, 1, epsrel=1e-11, points=[1e-4, 1e-3])[0]
+    for rounds in (1, 2, 12):
+        s, cum = refined_arclength(
+            fld, np.array([0.0, 0.0]), np.array([0.0, 1.0]), max_rounds=rounds
+        )
+        assert len(s) == len(cum) and s[0] == 0 and s[-1] == 1
+        assert (np.diff(cum) > 0).all()
+        assert cum[-1] == pytest.approx(exact, rel=1e-6)
+
+
 def test_constant_metric_mesh_is_unit_and_near_the_ideal_count(constant_result):
     fld, res = constant_result
     mesh = res.mesh
