@@ -338,15 +338,14 @@ def repeat_passes(
     passes = 0
     found = defects(fld, mesh)
     while passes < REPEAT_PASSES and found.count > 0:
-        saved = replace(tally)
-        new = _clean_up(fld, _last_swaps(fld, mesh, opt, tally), opt, tally)
-        if tally.changes() == saved.changes():
+        trial = replace(tally)  # the pass counts into a copy, kept with its mesh
+        new = _clean_up(fld, _last_swaps(fld, mesh, opt, trial), opt, trial)
+        if trial.changes() == tally.changes():
             break
         now = defects(fld, new)
         if now.worse_than(found, min_length=opt.sampling.min_dist):
-            for k, v in vars(saved).items():
-                setattr(tally, k, v)
             break
+        vars(tally).update(vars(trial))
         mesh, found, passes = new, now, passes + 1
     return mesh, passes
 
