@@ -348,10 +348,12 @@ def shortest_parabola(
     """The shortest parabola between each pair of points (paper equation (3)).
 
     α is found by a coarse scan of ``scan`` values in [−alpha_max, alpha_max]
-    (the length need not be unimodal over the whole range) and a vectorised
-    Brent search (parabolic interpolation safeguarded by golden-section
-    steps; the paper used golden section alone) in the bracket around the
-    best scanned value, down to ``alpha_tol``. The search uses a fixed composite Gauss rule; the
+    (the length need not be unimodal over the whole range; scans of at least
+    :data:`curvimesh.kernels.COARSE_SCAN` values use a 3-point rule, then walk
+    down the grid by the search's rule to a bracket) and Brent's method
+    (parabolic interpolation safeguarded by golden-section steps; the paper
+    used golden section alone) in the bracket around the best scanned value,
+    down to ``alpha_tol``. The search uses a fixed composite Gauss rule; the
     returned length is recomputed to 1e-5 relative when ``exact_length``.
 
     With ``remember`` the searches are looked up in, and added to, the field's
@@ -412,24 +414,57 @@ def _search_alpha(field, x0, x1, grid, alpha_tol, segments, order, start=None):
                 cm.g, a, b, s, grid, t, w, alpha_tol, 60, alpha, f_alpha
             )
         return alpha, f_alpha
-    n, scan = len(x0), len(grid)
+    n = len(x0)
     nrm = bisector_normal(x0, x1)
     mid0 = 0.5 * (x0 + x1)
 
-    def length(alpha: NDArray, rows: NDArray | slice = slice(None)) -> NDArray:
+    def length(alpha: NDArray, rows: NDArray | slice = slice(None), rule=None) -> NDArray:
+        seg, order_ = rule or (segments, order)
         xm = mid0[rows] + alpha[:, None] * nrm[rows]
-        return parabola_length_rule(field, x0[rows], x1[rows], xm, segments=segments, order=order)
+        return parabola_length_rule(field, x0[rows], x1[rows], xm, segments=seg, order=order_)
 
+    ia, ib, ic, fa, fb, fc = _scan_brackets(length, grid, n, segments, order)
+    return _brent_minimise(length, grid[ia], grid[ib], grid[ic], fa, fb, fc, alpha_tol)
+
+
+def _scan_brackets(length, grid: NDArray, n: int, segments: int, order: int):
+    """The brackets of :func:`_search_alpha`'s numpy path, as the compiled
+    :func:`curvimesh.kernels._scan_bracket` takes them: indices (ia, ib, ic) into
+    ``grid`` and the lengths (fa, fb, fc) there, ``(n,)`` each, by the search's rule;
+    ``length(alpha, rows, rule)`` gives lengths by a rule ``(segments, order)``."""
+    scan = len(grid)
+    coarse = scan >= kernels.COARSE_SCAN
+    rule = (1, len(kernels.COARSE_T)) if coarse else (segments, order)
     vals = np.empty((n, scan))
     for j, a in enumerate(grid):
-        vals[:, j] = length(np.full(n, a))
-    best = np.argmin(vals, axis=1)
+        vals[:, j] = length(np.full(n, a), slice(None), rule)
+    ib = np.argmin(vals, axis=1)
     rows = np.arange(n)
     # bracket (a, b, c) around the best scanned value; ends of the scan stay ends
-    ia, ic = np.maximum(best - 1, 0), np.minimum(best + 1, scan - 1)
-    a, b, c = grid[ia], grid[best], grid[ic]
-    fa, fb, fc = vals[rows, ia], vals[rows, best], vals[rows, ic]
-    return _brent_minimise(length, a, b, c, fa, fb, fc, alpha_tol)
+    ia, ic = np.maximum(ib - 1, 0), np.minimum(ib + 1, scan - 1)
+    if not coarse:
+        return ia, ib, ic, vals[rows, ia], vals[rows, ib], vals[rows, ic]
+
+    def at(i: NDArray, rows: NDArray) -> NDArray:
+        return length(grid[i], rows, (segments, order))
+
+    fb = at(ib, rows)
+    fa = np.where(ia == ib, fb, at(ia, rows))
+    fc = np.where(ic == ib, fb, at(ic, rows))
+    while True:  # walk down the grid while a neighbour is shorter by the search's rule
+        left = fa < fb
+        left &= fa <= fc
+        right = ~left & (fc < fb)
+        if not (left.any() or right.any()):
+            return ia, ib, ic, fa, fb, fc
+        r = np.flatnonzero(left)
+        ic[r], fc[r], ib[r], fb[r] = ib[r], fb[r], ia[r], fa[r]
+        ia[r] = np.maximum(ib[r] - 1, 0)
+        fa[r] = np.where(ia[r] == ib[r], fb[r], at(ia[r], r))
+        r = np.flatnonzero(right)
+        ia[r], fa[r], ib[r], fb[r] = ib[r], fb[r], ic[r], fc[r]
+        ic[r] = np.minimum(ib[r] + 1, scan - 1)
+        fc[r] = np.where(ic[r] == ib[r], fb[r], at(ic[r], r))
 
 
 def _lower_bound(sorted_keys: NDArray, keys: NDArray) -> NDArray:
@@ -514,52 +549,79 @@ def _memo(field: MetricField, options: tuple) -> _SearchMemo:
 
 
 def _brent_minimise(f, a, b, c, fa, fb, fc, tol: float, max_iter: int = 60):
-    """Vectorised safeguarded parabolic interpolation (Brent 1973) on brackets a ≤ b ≤ c.
+    """Brent's method (Brent 1973; Press et al. 2007, section 10.3) on brackets
+    a ≤ b ≤ c (fb ≤ fa, fc), vectorised: the numpy twin of
+    :func:`curvimesh.kernels._brent` (same steps, same stopping rule).
 
     ``f(x, rows)`` evaluates the objective on the given rows. Each iteration
-    tries the vertex of the parabola through the three points and falls back
-    to a golden-section step when that vertex is outside the bracket, too
-    close to b, or every third iteration (which bounds the worst case to the
-    golden rate). Returns the best point ``(n,)`` and its value.
+    tries the vertex of the parabola through the three best points seen and
+    falls back to a golden-section step when it leaves the bracket or is not
+    less than half the step before last; no step is shorter than tol / 4, and a
+    row stops once its bracket is at most ``tol`` wide around its best point.
+    Returns the best point ``(n,)`` and its value.
     """
-    a, b, c = a.astype(float).copy(), b.astype(float).copy(), c.astype(float).copy()
-    fa, fb, fc = fa.copy(), fb.copy(), fc.copy()
+    a, c = a.astype(float).copy(), c.astype(float).copy()
+    fa, fc = fa.astype(float).copy(), fc.astype(float).copy()
+    x, fx = b.astype(float).copy(), fb.astype(float).copy()
+    w, fw, v, fv = x.copy(), fx.copy(), x.copy(), fx.copy()
+    d, e = np.zeros_like(x), np.zeros_like(x)
     cgold = 0.3819660112501051
-    for it in range(max_iter):
-        act = np.flatnonzero((c - a) > tol)
+    tol1 = 0.25 * tol
+    for _ in range(max_iter):
+        xm = 0.5 * (a + c)
+        act = np.flatnonzero(np.abs(x - xm) > 2.0 * tol1 - 0.5 * (c - a))
         if act.size == 0:
             break
-        A, B, C = a[act], b[act], c[act]
-        FA, FB, FC = fa[act], fb[act], fc[act]
-        p = (B - A) ** 2 * (FB - FC) - (B - C) ** 2 * (FB - FA)
-        q = 2.0 * ((B - A) * (FB - FC) - (B - C) * (FB - FA))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = B - p / q
-        eps = 0.25 * tol
-        golden = (
-            ~np.isfinite(u)
-            | (u <= A + eps)
-            | (u >= C - eps)
-            | (np.abs(u - B) < eps)
-            | (it % 3 == 2)
-        )
-        right = (C - B) >= (B - A)
-        ug = np.where(right, B + cgold * (C - B), B - cgold * (B - A))
-        u = np.where(golden, ug, u)
+        X, W, V, FX, FW, FV = x[act], w[act], v[act], fx[act], fw[act], fv[act]
+        A, C, XM, D, E = a[act], c[act], xm[act], d[act], e[act]
+        with np.errstate(invalid="ignore", over="ignore"):
+            r = (X - W) * (FX - FV)
+            q = (X - V) * (FX - FW)
+            p = (X - V) * q - (X - W) * r
+            q = 2.0 * (q - r)
+            p = np.where(q > 0.0, -p, p)
+            q = np.abs(q)
+            para = (
+                (np.abs(E) > tol1)
+                & np.isfinite(p)
+                & np.isfinite(q)
+                & (np.abs(p) < np.abs(0.5 * q * E))
+                & (p > q * (A - X))
+                & (p < q * (C - X))
+            )
+            dp = p / np.where(para, q, 1.0)
+        up = XM >= X
+        u = X + dp
+        near_end = (u - A < 2.0 * tol1) | (C - u < 2.0 * tol1)
+        dp = np.where(near_end, np.where(up, tol1, -tol1), dp)
+        eg = np.where(X >= XM, A - X, C - X)
+        # e: the step before last, as the compiled loop keeps it
+        new_e = np.where(para, D, eg)
+        new_d = np.where(para, dp, cgold * eg)
+        step = np.where(np.abs(new_d) >= tol1, new_d, np.where(new_d >= 0.0, tol1, -tol1))
+        u = X + step
         fu = f(u, act)
         fu = np.where(np.isfinite(fu), fu, np.inf)
-        better = fu < FB
-        up = u > B
-        # better: b moves to u, the old b closes the bracket on its side
-        na = np.where(better, np.where(up, B, A), np.where(up, A, u))
-        nfa = np.where(better, np.where(up, FB, FA), np.where(up, FA, fu))
-        nc = np.where(better, np.where(up, C, B), np.where(up, u, C))
-        nfc = np.where(better, np.where(up, FC, FB), np.where(up, fu, FC))
-        nb = np.where(better, u, B)
-        nfb = np.where(better, fu, FB)
-        a[act], b[act], c[act] = na, nb, nc
-        fa[act], fb[act], fc[act] = nfa, nfb, nfc
-    return b, fb
+        better = fu <= FX
+        right = u >= X
+        # bracket ends
+        na = np.where(better, np.where(right, X, A), np.where(~right, u, A))
+        nfa = np.where(better, np.where(right, FX, fa[act]), np.where(~right, fu, fa[act]))
+        nc = np.where(better, np.where(right, C, X), np.where(right, u, C))
+        nfc = np.where(better, np.where(right, fc[act], FX), np.where(right, fu, fc[act]))
+        # best three
+        to_w = ~better & ((fu <= FW) | (W == X))
+        to_v = ~better & ~to_w & ((fu <= FV) | (V == X) | (V == W))
+        nv = np.where(better, W, np.where(to_w, W, np.where(to_v, u, V)))
+        nfv = np.where(better, FW, np.where(to_w, FW, np.where(to_v, fu, FV)))
+        nw = np.where(better, X, np.where(to_w, u, W))
+        nfw = np.where(better, FX, np.where(to_w, fu, FW))
+        nx = np.where(better, u, X)
+        nfx = np.where(better, fu, FX)
+        a[act], fa[act], c[act], fc[act] = na, nfa, nc, nfc
+        x[act], fx[act], w[act], fw[act], v[act], fv[act] = nx, nfx, nw, nfw, nv, nfv
+        d[act], e[act] = new_d, new_e
+    return x, fx
 
 
 #: Points (t, s) ↦ a + t (b − a) + s (b − a)×e₃ where :func:`chord_lower_bound` samples

@@ -556,24 +556,70 @@ def _convex_floor(a, b, c, fa, fb, fc):
     return min(fb - (fc - fb) * (b - a) / (c - b), fb - (fa - fb) * (c - b) / (b - a))
 
 
-@njit(**_JIT)
-def _search(fn, ax, ay, bx, by, grid, t, w, tol, max_iter, decide, short, long):
-    """The shortest-parabola search of one row; returns (α, length, verdict).
+def _coarse_rule(order: int) -> tuple[NDArray, NDArray]:
+    xg, wg = np.polynomial.legendre.leggauss(order)
+    return (xg + 1) / 2, wg / 2
 
-    A scan of α over ``grid``, then :func:`_brent` in the bracket around the
-    best scanned value.
+
+#: The rule of the scan of :func:`_search` when it has at least :data:`COARSE_SCAN`
+#: values: one 3-point Gauss–Legendre segment (the scan only picks a bracket).
+COARSE_T, COARSE_W = _coarse_rule(3)
+COARSE_SCAN = 7
+
+
+@njit(**_JIT)
+def _scan_bracket(fn, ax, ay, bx, by, grid, t, w):
+    """The bracket (ia, ib, ic) of ``grid`` indices and the lengths (fa, fb, fc) there
+    by the rule (t, w) that :func:`_search` refines.
+
+    Short scans use the rule itself: ib is the first smallest scanned length (as
+    np.argmin), ia and ic its neighbours, clipped to the scan (an end stays an
+    end). Scans of at least :data:`COARSE_SCAN` values scan with the coarse rule
+    (:data:`COARSE_T`), then take the three lengths by (t, w) and walk down the
+    grid while a neighbour is shorter, so that fb ≤ fa, fc holds for the rule
+    the search minimises.
     """
     scan = grid.shape[0]
+    coarse = scan >= COARSE_SCAN
+    ts = COARSE_T if coarse else t
+    ws = COARSE_W if coarse else w
     vals = np.empty(scan)
     best = 0
     for j in range(scan):
-        vals[j] = _offset_length(fn, ax, ay, bx, by, grid[j], t, w)
+        vals[j] = _offset_length(fn, ax, ay, bx, by, grid[j], ts, ws)
         if vals[j] < vals[best]:  # the first smallest, as np.argmin
             best = j
     ia = max(best - 1, 0)
     ic = min(best + 1, scan - 1)
+    if not coarse:
+        return ia, best, ic, vals[ia], vals[best], vals[ic]
+    ib = best
+    fb = _offset_length(fn, ax, ay, bx, by, grid[ib], t, w)
+    fa = fb if ia == ib else _offset_length(fn, ax, ay, bx, by, grid[ia], t, w)
+    fc = fb if ic == ib else _offset_length(fn, ax, ay, bx, by, grid[ic], t, w)
+    while True:
+        if fa < fb and fa <= fc:  # downhill towards −α
+            ic, fc, ib, fb = ib, fb, ia, fa
+            ia = max(ib - 1, 0)
+            fa = fb if ia == ib else _offset_length(fn, ax, ay, bx, by, grid[ia], t, w)
+        elif fc < fb:  # downhill towards +α
+            ia, fa, ib, fb = ib, fb, ic, fc
+            ic = min(ib + 1, scan - 1)
+            fc = fb if ic == ib else _offset_length(fn, ax, ay, bx, by, grid[ic], t, w)
+        else:
+            return ia, ib, ic, fa, fb, fc
+
+
+@njit(**_JIT)
+def _search(fn, ax, ay, bx, by, grid, t, w, tol, max_iter, decide, short, long):
+    """The shortest-parabola search of one row; returns (α, length, verdict).
+
+    A scan of α over ``grid`` (:func:`_scan_bracket`), then :func:`_brent` in
+    the bracket around the best scanned value.
+    """
+    ia, ib, ic, fa, fb, fc = _scan_bracket(fn, ax, ay, bx, by, grid, t, w)
     return _brent(
-        fn, ax, ay, bx, by, grid[ia], grid[best], grid[ic], vals[ia], vals[best], vals[ic],
+        fn, ax, ay, bx, by, grid[ia], grid[ib], grid[ic], fa, fb, fc,
         t, w, tol, max_iter, decide, short, long,
     )  # fmt: skip
 
@@ -583,9 +629,11 @@ def _brent(fn, ax, ay, bx, by, a, b, c, fa, fb, fc, t, w, tol, max_iter, decide,
     """Brent's minimisation of the parabola length in α from the bracket a ≤ b ≤ c
     (fb ≤ fa, fc); returns (α, length, verdict).
 
-    Safeguarded parabolic interpolation (Brent 1973), golden-section steps
-    when the vertex is unusable or every third iteration, until the bracket
-    is at most ``tol`` wide; the length is the best value seen.
+    Brent's method (Brent 1973, chapter 5; Press et al. 2007, section 10.3):
+    parabolic interpolation through the three best points seen, a golden-section
+    step when the interpolated step is out of the bracket or not less than half
+    the step before last, and no step shorter than tol / 4, until the bracket is
+    at most ``tol`` wide around the best point; the length is the best value seen.
 
     With ``decide``, the search stops as soon as the verdict is known, the
     length being assumed convex in α on the bracket (Brent's own model): −1
@@ -595,45 +643,74 @@ def _brent(fn, ax, ay, bx, by, a, b, c, fa, fb, fc, t, w, tol, max_iter, decide,
     that of the final length.
     """
     cgold = 0.3819660112501051
-    for it in range(max_iter):
+    tol1 = 0.25 * tol
+    x, fx = b, fb
+    wp, fw = b, fb  # second best
+    vp, fv = b, fb  # previous value of wp
+    d = 0.0
+    e = 0.0  # the step before last
+    for _ in range(max_iter):
         if decide:
-            if fb < short:
-                return b, fb, -1
-            floor = _convex_floor(a, b, c, fa, fb, fc)
+            if fx < short:
+                return x, fx, -1
+            floor = _convex_floor(a, x, c, fa, fx, fc)
             if floor > long:
-                return b, fb, 1
-            if fb <= long and floor >= short:
-                return b, fb, 0
-        if not (c - a) > tol:
+                return x, fx, 1
+            if fx <= long and floor >= short:
+                return x, fx, 0
+        xm = 0.5 * (a + c)
+        if abs(x - xm) <= 2.0 * tol1 - 0.5 * (c - a):
             break
-        p = (b - a) ** 2 * (fb - fc) - (b - c) ** 2 * (fb - fa)
-        q = 2.0 * ((b - a) * (fb - fc) - (b - c) * (fb - fa))
-        u = b - p / q
-        eps = 0.25 * tol
-        golden = (
-            not math.isfinite(u) or u <= a + eps or u >= c - eps or abs(u - b) < eps or it % 3 == 2
-        )
+        golden = True
+        if abs(e) > tol1:
+            r = (x - wp) * (fx - fv)
+            q = (x - vp) * (fx - fw)
+            p = (x - vp) * q - (x - wp) * r
+            q = 2.0 * (q - r)
+            if q > 0.0:
+                p = -p
+            q = abs(q)
+            etemp = e
+            e = d
+            if (
+                math.isfinite(p)
+                and math.isfinite(q)
+                and abs(p) < abs(0.5 * q * etemp)
+                and p > q * (a - x)
+                and p < q * (c - x)
+            ):
+                d = p / q
+                u = x + d
+                if u - a < 2.0 * tol1 or c - u < 2.0 * tol1:
+                    d = tol1 if xm >= x else -tol1
+                golden = False
         if golden:
-            if (c - b) >= (b - a):
-                u = b + cgold * (c - b)
-            else:
-                u = b - cgold * (b - a)
+            e = (a - x) if x >= xm else (c - x)
+            d = cgold * e
+        if abs(d) >= tol1:
+            u = x + d
+        else:
+            u = x + (tol1 if d >= 0.0 else -tol1)
         fu = _offset_length(fn, ax, ay, bx, by, u, t, w)
         if not math.isfinite(fu):
             fu = math.inf
-        if fu < fb:
-            if u > b:
-                a, fa = b, fb
+        if fu <= fx:
+            if u >= x:
+                a, fa = x, fx
             else:
-                c, fc = b, fb
-            b, fb = u, fu
+                c, fc = x, fx
+            vp, fv, wp, fw, x, fx = wp, fw, x, fx, u, fu
         else:
-            if u > b:
-                c, fc = u, fu
-            else:
+            if u < x:
                 a, fa = u, fu
-    verdict = -1 if fb < short else (1 if fb > long else 0)
-    return b, fb, verdict
+            else:
+                c, fc = u, fu
+            if fu <= fw or wp == x:
+                vp, fv, wp, fw = wp, fw, u, fu
+            elif fu <= fv or vp == x or vp == wp:
+                vp, fv = u, fu
+    verdict = -1 if fx < short else (1 if fx > long else 0)
+    return x, fx, verdict
 
 
 @njit(**_JIT)
