@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from curvimesh.freenode import parabola_verdicts, shortest_parabola
+from curvimesh.freenode import shortest_parabola
 from curvimesh.mesh import Mesh, signed_areas
 from curvimesh.metric import MetricField
 from curvimesh.triangulate import metric_delaunay
@@ -58,10 +58,14 @@ def edge_parabola_lengths(
 def carried_alpha(old_edges: NDArray, old_alpha: NDArray, edges: NDArray, n: int) -> NDArray:
     """α ``(E,)`` of ``edges`` ``(E, 2)`` from the same edges in ``old_edges`` ``(E', 2)``
     (both sorted, as :attr:`Mesh.edges`, ``n`` points), NaN for the new ones."""
+    return _carried(old_edges, old_alpha, edges, n)
+
+
+def _carried(old_edges: NDArray, values: NDArray, edges: NDArray, n: int) -> NDArray:
     old_keys = old_edges[:, 0] * n + old_edges[:, 1]
     keys = edges[:, 0] * n + edges[:, 1]
     pos = np.minimum(np.searchsorted(old_keys, keys), len(old_keys) - 1)
-    return np.where(old_keys[pos] == keys, old_alpha[pos], np.nan)
+    return np.where(old_keys[pos] == keys, values[pos], np.nan)
 
 
 def _undo_bad_moves(
@@ -72,35 +76,54 @@ def _undo_bad_moves(
     edges: NDArray,
     tris: NDArray,
     min_dist: float,
-    old_length: NDArray | None = None,
+    old_length: NDArray,
+    old_alpha: NDArray,
     max_length: float = 1.4,
-) -> NDArray:
-    """The positions ``new`` ``(n, 2)`` with the bad moves of vertices ``moved`` undone.
+) -> tuple[NDArray, NDArray, NDArray]:
+    """The positions ``new`` ``(n, 2)`` with the bad moves of vertices ``moved`` undone,
+    and the lengths and α ``(E,)`` of ``edges`` there.
 
-    A moved vertex goes back to ``old`` when it is a corner of a triangle of
-    ``tris`` that is inverted (signed area ≤ 0) or an end of an edge of
-    ``edges`` that touches a moved vertex and whose shortest parabola is
-    shorter than ``min_dist`` or, given the edges' lengths ``old_length`` at
-    ``old``, longer than both ``max_length`` and its old length (a move never
-    makes a long edge, or a long edge longer). This repeats until no move is
-    undone (each pass undoes at least one, so it ends). Each pass re-measures
-    only the triangles and edges at the vertices just undone: nothing else
-    changes (an edge between two vertices that stay put is not checked).
+    ``old_length`` and ``old_alpha`` are the edges' lengths and α at ``old``
+    (:func:`edge_parabola_lengths`). An edge touching a moved vertex is searched
+    again at its new ends, from its old α; a moved vertex goes back to ``old``
+    when it is a corner of a triangle of ``tris`` that is inverted (signed
+    area ≤ 0) or an end of such an edge that came out shorter than
+    ``min_dist`` or longer than both ``max_length`` and its old length (a move
+    never makes a long edge, or a long edge longer). This repeats until no
+    move is undone (each pass undoes at least one, so it ends). Each pass
+    re-measures only the triangles and edges at the vertices just undone: an
+    edge whose ends are both back has its old length. The lengths returned
+    are those the next sweep needs, so that no edge is searched twice at the
+    same ends.
     """
     n = len(new)
     new = new.copy()
+    length, alpha = old_length.copy(), old_alpha.copy()
+    bad_e = np.zeros(len(edges), dtype=bool)
     if moved.size == 0:
-        return new
+        return new, length, alpha
     is_moved = np.zeros(n, dtype=bool)
     is_moved[moved] = True
+    longest = np.maximum(max_length, old_length)
+
+    def measure(rows: NDArray) -> None:
+        # rows with a moved end are searched at their new ends, the others are back
+        now = is_moved[edges[rows]].any(axis=1)
+        back = rows[~now]
+        length[back], alpha[back], bad_e[back] = old_length[back], old_alpha[back], False
+        rows = rows[now]
+        if rows.size == 0:
+            return
+        ln, al = edge_parabola_lengths(field, new, edges[rows], old_alpha[rows])
+        length[rows], alpha[rows] = ln, al
+        bad_e[rows] = (ln < min_dist) | (ln > longest[rows])
+
     bad_t = signed_areas(new, tris) <= 0
-    short = np.zeros(len(edges), dtype=bool)
-    touch = np.flatnonzero(is_moved[edges].any(axis=1))
-    _update_bad(field, new, edges, touch, is_moved, short, min_dist, old_length, max_length)
+    measure(np.flatnonzero(is_moved[edges].any(axis=1)))
     while moved.size:
         bad_v = np.zeros(n, dtype=bool)
         bad_v[tris[bad_t].ravel()] = True
-        bad_v[edges[short].ravel()] = True
+        bad_v[edges[bad_e].ravel()] = True
         undo = moved[bad_v[moved] & (np.abs(new[moved] - old[moved]).max(axis=1) > 0)]
         if undo.size == 0:
             break
@@ -111,34 +134,8 @@ def _undo_bad_moves(
         is_moved[undo] = False
         at = np.flatnonzero(undone[tris].any(axis=1))
         bad_t[at] = signed_areas(new, tris[at]) <= 0
-        at = np.flatnonzero(undone[edges].any(axis=1))
-        _update_bad(field, new, edges, at, is_moved, short, min_dist, old_length, max_length)
-    return new
-
-
-def _update_bad(
-    field: MetricField,
-    pts: NDArray,
-    edges: NDArray,
-    rows: NDArray,
-    is_moved: NDArray,
-    bad: NDArray,
-    min_dist: float,
-    old_length: NDArray | None,
-    max_length: float,
-) -> None:
-    """Set ``bad[rows]``: the edge touches a moved vertex and its parabola is shorter than
-    min_dist or (with ``old_length``) longer than both max_length and its old length."""
-    bad[rows] = False
-    rows = rows[is_moved[edges[rows]].any(axis=1)]
-    if rows.size == 0:
-        return
-    # the parabola is searched only where the bounds leave the answer open
-    longest = None if old_length is None else np.maximum(max_length, old_length[rows])
-    verdict = parabola_verdicts(
-        field, pts[edges[rows, 0]], pts[edges[rows, 1]], short=min_dist, long=longest
-    )
-    bad[rows] = verdict != 0
+        measure(np.flatnonzero(undone[edges].any(axis=1)))
+    return new, length, alpha
 
 
 def relocate(
@@ -156,14 +153,9 @@ def relocate(
     fixed = _on_box(pts, field.box)
     n = len(pts)
     cur = mesh
-    old_edges = alpha = None
-    for _ in range(sweeps):
-        e = cur.edges
-        # the vertices move little between sweeps: each edge's search starts from its
-        # last α (the edges a flip made are searched from scratch)
-        start = None if alpha is None else carried_alpha(old_edges, alpha, e, n)
-        length, alpha = edge_parabola_lengths(field, pts, e, start)
-        old_edges = e
+    e = cur.edges
+    length, alpha = edge_parabola_lengths(field, pts, e)
+    for sweep in range(sweeps):
         i = np.concatenate([e[:, 0], e[:, 1]])
         j = np.concatenate([e[:, 1], e[:, 0]])
         ln = np.concatenate([length, length])
@@ -181,7 +173,18 @@ def relocate(
         move = np.where(fixed[:, None] | (count[:, None] == 0), 0.0, relax * (avg - pts))
         new = pts + move
         moved = np.flatnonzero(np.abs(move).max(axis=1) > 0)
-        new = _undo_bad_moves(field, pts, new, moved, e, cur.corners, min_dist, length, max_length)
-        pts = new
+        pts, length, alpha = _undo_bad_moves(
+            field, pts, new, moved, e, cur.corners, min_dist, length, alpha, max_length
+        )
         cur = metric_delaunay(field, Mesh(pts, cur.corners, mesh.box))
+        if sweep + 1 == sweeps:
+            break
+        # the edges a flip made are searched from scratch; the others keep their
+        # lengths at these positions (measured by the undo pass)
+        old_edges, e = e, cur.edges
+        length = _carried(old_edges, length, e, n)
+        alpha = _carried(old_edges, alpha, e, n)
+        fresh = np.flatnonzero(np.isnan(alpha))
+        if fresh.size:
+            length[fresh], alpha[fresh] = edge_parabola_lengths(field, pts, e[fresh])
     return cur

@@ -278,7 +278,8 @@ def test_max_vertices_fails_fast():
 
 def test_relocation_undo_matches_full_remeasuring():
     """Undoing bad moves re-measures only at undone vertices, with the result of
-    re-measuring every edge at a moved vertex on every pass."""
+    re-measuring every edge at a moved vertex on every pass; the lengths it returns
+    are those of the edges at the final positions."""
     from curvimesh.mesh import signed_areas
     from curvimesh.smooth import _on_box, _undo_bad_moves, edge_parabola_lengths
     from curvimesh.triangulate import delaunay, metric_delaunay
@@ -291,10 +292,12 @@ def test_relocation_undo_matches_full_remeasuring():
     new = pts.copy()
     # random moves: some invert triangles or shorten edges, undoing takes several passes
     new[moved] += np.random.default_rng(5).normal(scale=0.03, size=(len(moved), 2))
-    before, _ = edge_parabola_lengths(fld, pts, e)
+    before, alpha = edge_parabola_lengths(fld, pts, e)
     # the random moves make many edges longer than 1.5: the long-edge rule undoes moves too
     max_length = 1.5
-    got = _undo_bad_moves(fld, pts, new, moved, e, tris, 0.7, before, max_length)
+    got, got_length, _ = _undo_bad_moves(
+        fld, pts, new, moved, e, tris, 0.7, before, alpha, max_length
+    )
     # the plain loop: everything re-measured on every pass
     ref = new.copy()
     long_undone = False
@@ -303,7 +306,7 @@ def test_relocation_undo_matches_full_remeasuring():
         touch = np.isin(e, moved).any(axis=1)
         short = np.zeros(len(e), dtype=bool)
         if touch.any():
-            length, _ = edge_parabola_lengths(fld, ref, e[touch])
+            length, _ = edge_parabola_lengths(fld, ref, e[touch], alpha[touch])
             long = length > np.maximum(max_length, before[touch])
             long_undone |= bool(long.any())
             short[touch] = (length < 0.7) | long
@@ -318,6 +321,10 @@ def test_relocation_undo_matches_full_remeasuring():
     assert np.array_equal(got, ref)
     assert not np.array_equal(got, new) and not np.array_equal(got, pts)
     assert long_undone
+    # a constant metric: every edge's shortest parabola is its segment, sqrt(dᵀ g d)
+    d = got[e[:, 1]] - got[e[:, 0]]
+    g = fld.tensor(got[:1])[0]
+    np.testing.assert_allclose(got_length, np.sqrt(np.einsum("pi,ij,pj->p", d, g, d)), rtol=1e-7)
 
 
 def test_too_close_in_blocks_matches_one_block(monkeypatch):
