@@ -34,7 +34,13 @@ from numpy.typing import NDArray
 
 from curvimesh.boundary import BoundaryMesh
 from curvimesh.freenode import any_closer_in_index, parabola_verdicts, shortest_parabola
-from curvimesh.geodesic import PAIR_BLOCK, parabola_length_rule, shoot, unit_velocity
+from curvimesh.geodesic import (
+    PAIR_BLOCK,
+    bisector_normal,
+    parabola_length_rule,
+    shoot,
+    unit_velocity,
+)
 from curvimesh.metric import MetricField, smallest_eigenvalue
 from curvimesh.spatial import PointIndex, pairs_within_boxes
 
@@ -196,6 +202,16 @@ def shortened_ends(
     positions and unit-speed velocities at t = 0 and t = ℓ — no second shot.
     """
     x1, v1 = shot.end[ok], shot.velocity[ok]
+    v0 = unit_velocity(field, starts, dirs) * spacing  # d/ds with s in [0, 1]
+    v1 = v1 * spacing
+    # the search starts from the α of the geodesic's own middle: the Hermite
+    # cubic's at s = 1/2 is (x₀ + x₁)/2 + (v₀ − v₁)/8
+    d = x1 - starts
+    with np.errstate(invalid="ignore", divide="ignore"):
+        guess = np.einsum("ij,ij->i", 0.125 * (v0 - v1), bisector_normal(starts, x1)) / np.einsum(
+            "ij,ij->i", d, d
+        )
+    guess[~np.isfinite(guess)] = 0.0
     par = shortest_parabola(
         field,
         starts,
@@ -204,13 +220,11 @@ def shortened_ends(
         alpha_tol=2e-3,
         exact_length=False,
         remember=False,
-        start=np.zeros(len(starts)),
+        start=guess,
     )
     with np.errstate(invalid="ignore", divide="ignore"):
         s = np.clip(spacing / par.length, 0.0, 1.0)  # fraction of the geodesic kept
     s[~np.isfinite(s)] = 1.0
-    v0 = unit_velocity(field, starts, dirs) * spacing  # d/ds with s in [0, 1]
-    v1 = v1 * spacing
     h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
     h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
     return h00[:, None] * starts + h10[:, None] * v0 + h01[:, None] * x1 + h11[:, None] * v1
