@@ -1445,6 +1445,73 @@ def bytes_lower_bound(keys, queries, pos):
 
 
 # --------------------------------------------------------------------------- #
+# Memo tables: values of float rows, by the rows' bits                          #
+# --------------------------------------------------------------------------- #
+
+_H0 = np.uint64(0x9E3779B97F4A7C15)
+_HM = np.uint64(0xFF51AFD7ED558CCD)
+_S33 = np.uint64(33)
+
+
+@njit(**_JIT)
+def _slot(words, i, mask):
+    """The first slot of row ``i`` of ``words`` ``(n, w)`` (uint64) in a table of
+    ``mask + 1`` slots: the row's words folded by the multiply–xorshift step of
+    MurmurHash3's finaliser (Appleby 2011)."""
+    h = _H0
+    for k in range(words.shape[1]):
+        h = (h ^ words[i, k]) * _HM
+        h = h ^ (h >> _S33)
+    return h & mask
+
+
+@njit(**_JIT)
+def _probe(keys, filled, words, i):
+    """The slot holding row ``i`` of ``words``, or the empty slot where it would go
+    (linear probing; the table is never full)."""
+    mask = np.uint64(keys.shape[0] - 1)
+    j = _slot(words, i, mask)
+    while filled[j]:
+        same = True
+        for k in range(words.shape[1]):
+            if keys[j, k] != words[i, k]:
+                same = False
+                break
+        if same:
+            return j
+        j = (j + np.uint64(1)) & mask
+    return j
+
+
+@njit(**_JIT)
+def memo_find(keys, values, filled, words, out, found):
+    """For each row of ``words`` ``(n, w)`` (uint64, the bits of float rows), its value
+    in the table (``keys`` ``(cap, w)``, ``values`` ``(cap,)``, ``filled`` ``(cap,)``,
+    cap a power of two) into ``out`` and whether it is there into ``found``."""
+    for i in range(words.shape[0]):
+        j = _probe(keys, filled, words, i)
+        found[i] = filled[j]
+        if filled[j]:
+            out[i] = values[j]
+
+
+@njit(**_JIT)
+def memo_insert(keys, values, filled, words, vals):
+    """Put rows ``words`` ``(n, w)`` with values ``vals`` ``(n,)`` into the table
+    (a row already there keeps its first value); the number of rows added. The
+    caller keeps the table at most half full."""
+    added = 0
+    for i in range(words.shape[0]):
+        j = _probe(keys, filled, words, i)
+        if not filled[j]:
+            filled[j] = True
+            keys[j, :] = words[i, :]
+            values[j] = vals[i]
+            added += 1
+    return added
+
+
+# --------------------------------------------------------------------------- #
 # Metric areas of curved triangles                                             #
 # --------------------------------------------------------------------------- #
 

@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from curvimesh import kernels
 from curvimesh.bezier import p2_jacobian, p2_map, p2_shape, p2_shape_grad
 from curvimesh.geodesic import parabola_length, parabola_length_rule
+from curvimesh.memo import memo_table, memoised
 from curvimesh.metric import MetricField
 
 #: Local corner pairs (a, b) and edge-node slot of the three edges of a triangle6.
@@ -49,7 +50,16 @@ def metric_areas(field: MetricField, nodes: NDArray, *, order: int = 4) -> NDArr
 
     Uses :func:`triangle_rule` of the given order on the reference triangle;
     J(ξ) enters with its sign, so an inverted triangle has a smaller area.
+    Areas are remembered by their nodes (:mod:`curvimesh.memo`).
     """
+    nodes = np.asarray(nodes, dtype=float).reshape(-1, 6, 2)
+    table = memo_table(field, ("metric_areas", order), 12)
+    return memoised(table, nodes.reshape(-1, 12), lambda rows: _metric_areas(field, rows, order))
+
+
+def _metric_areas(field: MetricField, rows: NDArray, order: int) -> NDArray:
+    """:func:`metric_areas` of nodes ``(m, 12)``, computed."""
+    nodes = rows.reshape(-1, 6, 2)
     uv, w = triangle_rule(order)
     cm = field.kernel
     if cm is not None:
@@ -77,13 +87,24 @@ def edge_lengths(
     accurate to ``rtol`` relative (adaptive composite Gauss–Legendre).
     """
     x0, x1 = points[edges[:, 0]], points[edges[:, 1]]
-    xm = None if mids is None else points[mids]
-    return parabola_length(field, x0, x1, xm, rtol=rtol)
+    xm = 0.5 * (x0 + x1) if mids is None else points[mids]
+    table = memo_table(field, ("edge_lengths", rtol), 6)
+    return memoised(
+        table,
+        np.column_stack([x0, x1, xm]),
+        lambda r: parabola_length(field, r[:, 0:2], r[:, 2:4], r[:, 4:6], rtol=rtol),
+    )
 
 
 def edge_lengths_fast(field: MetricField, x0: NDArray, x1: NDArray, xm: NDArray) -> NDArray:
-    """Edge lengths ``(E,)`` with a fixed 2×5-point Gauss rule (for the optimisation loops)."""
-    return parabola_length_rule(field, x0, x1, xm, segments=2, order=5)
+    """Edge lengths ``(E,)`` with a fixed 2×5-point Gauss rule (for the optimisation loops),
+    remembered by their nodes (:mod:`curvimesh.memo`)."""
+    table = memo_table(field, ("edge_lengths_fast",), 6)
+    return memoised(
+        table,
+        np.column_stack([x0, x1, xm]),
+        lambda r: parabola_length_rule(field, r[:, 0:2], r[:, 2:4], r[:, 4:6], segments=2, order=5),
+    )
 
 
 def quality_from(area: NDArray, lengths: NDArray) -> NDArray:

@@ -19,6 +19,7 @@ LAYERS = {
     "expressions": 1,
     "bezier": 1,
     "spatial": 1,
+    "memo": 1,
     "mesh": 2,
     "interpolation": 2,
     "metric": 3,

@@ -1,0 +1,108 @@
+"""Memo tables of pure functions of float rows: an edge's length, a triangle's area.
+
+The stages after curving measure the same edges and triangles over and over:
+each swap pass, re-curving round, insertion, split, shift and removal takes
+the lengths and qualities of the whole mesh, which changed in a few places
+since the last. The quantities are pure functions of the nodes, so they are
+kept in open-addressing hash tables keyed by the exact bits of the nodes
+(:func:`curvimesh.kernels.memo_find`): a row found is the same number the
+function would give, and a run's mesh does not depend on what was cached.
+A table holds at most :data:`MAX_TABLE_BYTES`; past that it is emptied and
+filled again.
+"""
+
+from __future__ import annotations
+
+import weakref
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from curvimesh import kernels
+
+#: The most bytes one table takes (keys and values); it is emptied beyond.
+MAX_TABLE_BYTES = 256 * 2**20
+
+
+class RowMemo:
+    """Values ``(n,)`` of rows of ``width`` floats, by the rows' bits."""
+
+    def __init__(self, width: int, *, capacity: int = 1 << 12) -> None:
+        self.width = width
+        slot_bytes = 8 * width + 9
+        self.max_slots = 1 << max(10, int(np.log2(MAX_TABLE_BYTES / slot_bytes)))
+        self._allocate(min(capacity, self.max_slots))
+
+    def _allocate(self, slots: int) -> None:
+        self.keys = np.zeros((slots, self.width), dtype=np.uint64)
+        self.values = np.zeros(slots)
+        self.filled = np.zeros(slots, dtype=np.bool_)
+        self.count = 0
+
+    def __len__(self) -> int:
+        return self.count
+
+    def _words(self, rows: NDArray) -> NDArray:
+        rows = np.ascontiguousarray(rows, dtype=np.float64).reshape(-1, self.width)
+        return rows.view(np.uint64)
+
+    def find(self, rows: NDArray) -> tuple[NDArray, NDArray]:
+        """Values ``(n,)`` of ``rows`` ``(n, width)`` (NaN where absent) and whether each is
+        there ``(n,)``."""
+        words = self._words(rows)
+        out = np.full(len(words), np.nan)
+        found = np.zeros(len(words), dtype=np.bool_)
+        if self.count:
+            kernels.memo_find(self.keys, self.values, self.filled, words, out, found)
+        return out, found
+
+    def add(self, rows: NDArray, values: NDArray) -> None:
+        """Remember ``values`` ``(n,)`` of ``rows`` ``(n, width)``."""
+        words = self._words(rows)
+        values = np.ascontiguousarray(values, dtype=np.float64)
+        need = 2 * (self.count + len(words))
+        if need > len(self.filled):
+            slots = len(self.filled)
+            while slots < need and slots < self.max_slots:
+                slots *= 2
+            if need > slots:  # too big: start again
+                self._allocate(slots)
+            else:
+                keys, vals, filled = self.keys, self.values, self.filled
+                self._allocate(slots)
+                self.count = kernels.memo_insert(
+                    self.keys, self.values, self.filled, keys[filled], vals[filled]
+                )
+        if 2 * len(words) > len(self.filled):  # more rows than a table holds: keep the last
+            words, values = words[-len(self.filled) // 2 :], values[-len(self.filled) // 2 :]
+        self.count += kernels.memo_insert(self.keys, self.values, self.filled, words, values)
+
+
+_TABLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def memo_table(owner: object, key: tuple, width: int) -> RowMemo:
+    """The table of ``owner`` (a metric field; dropped with it) for ``key``."""
+    per_owner = _TABLES.setdefault(owner, {})
+    table = per_owner.get(key)
+    if table is None:
+        table = per_owner[key] = RowMemo(width)
+    return table
+
+
+def memoised(table: RowMemo, rows: NDArray, compute: Callable[[NDArray], NDArray]) -> NDArray:
+    """``compute(rows)`` ``(n,)`` for rows ``(n, width)``, computing only the rows not in
+    ``table`` (``compute`` is called on those, in order) and remembering them."""
+    rows = np.ascontiguousarray(rows, dtype=np.float64).reshape(len(rows), table.width)
+    out, found = table.find(rows)
+    todo = np.flatnonzero(~found)
+    if todo.size:
+        # a row may repeat within one call: computed for each, remembered once
+        vals = compute(rows[todo])
+        out[todo] = vals
+        table.add(rows[todo], vals)
+    return out
+
+
+__all__ = ["MAX_TABLE_BYTES", "RowMemo", "memo_table", "memoised"]
