@@ -86,18 +86,47 @@ def principal_directions(field: MetricField, pts: NDArray) -> NDArray:
     return np.stack([v1, -v1, v2, -v2], axis=1)
 
 
-def search_halfwidths(field: MetricField, pts: NDArray, radius: float) -> NDArray:
-    """Half-widths ``(n, 2)`` of a search box holding the points within metric distance ``radius``.
+#: Where :func:`search_halfwidths` samples the largest size: the centre, the corners
+#: and the side midpoints of the box of the local largest size (in half-widths).
+_BOX_SAMPLES = np.array(
+    [[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [1, -1], [-1, 1], [-1, -1]], dtype=float
+)
 
-    The largest local size 1/sqrt(λ_min(g)) times the radius, in both
-    directions: the box of the ball of the local metric's largest size, since
-    the metric varies between two points (a tighter box, the bounding box of
-    the local metric ball, misses neighbours across curved anisotropic layers).
+#: Allowance of :func:`search_halfwidths` for the sizes' growth beyond the largest
+#: size sampled: the box is 0.7 × radius × that size wide on each side.
+SAMPLED_GROWTH = 0.7
+
+
+def search_halfwidths(field: MetricField, pts: NDArray, radius: float) -> NDArray:
+    """Half-widths ``(n, 2)`` of a search box holding the points within metric distance
+    radius / 2 of each point, with room for the sizes to grow.
+
+    A point at metric distance D lies within Euclidean distance D × H, H the
+    largest size 1/sqrt(λ_min(g)) along the shortest path. H is sampled at the
+    centre, corners and side midpoints of the box of half-width radius × h (h the
+    local largest size: the box allows the sizes to double), clipped to the
+    domain, and the box is SAMPLED_GROWTH × radius × H on each side (for
+    radius = 2 × min_dist: a growth of 1.4 beyond the largest size sampled).
+    Where the sizes are uniform the box is 0.7 times as wide as the
+    doubling box, and holds about half the points; where they grow faster it
+    is wider. The box is square, the bounding box of the ball of the largest
+    size, since the metric turns between two points (a tighter box, the
+    bounding box of the local metric ball, misses neighbours across curved
+    anisotropic layers).
     """
-    w = smallest_eigenvalue(field.tensor(pts, check=False))
+    pts = np.asarray(pts, dtype=float).reshape(-1, 2)
     with np.errstate(invalid="ignore", divide="ignore"):
-        hw = radius / np.sqrt(w)
-    hw[~np.isfinite(hw)] = 0.0
+        h = 1.0 / np.sqrt(smallest_eigenvalue(field.tensor(pts, check=False)))
+    h[~np.isfinite(h)] = 0.0
+    xmin, ymin, xmax, ymax = field.box
+    probe = pts[:, None, :] + _BOX_SAMPLES[None] * (radius * h)[:, None, None]
+    probe[..., 0] = np.clip(probe[..., 0], xmin, xmax)
+    probe[..., 1] = np.clip(probe[..., 1], ymin, ymax)
+    lam = smallest_eigenvalue(field.tensor(probe.reshape(-1, 2), check=False))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        size = 1.0 / np.sqrt(lam.reshape(len(pts), len(_BOX_SAMPLES)))
+    size[~np.isfinite(size)] = 0.0
+    hw = SAMPLED_GROWTH * radius * np.maximum(size.max(axis=1), h)
     return np.column_stack([hw, hw])
 
 
