@@ -189,17 +189,28 @@ def close_to_index(
     )
 
 
-def _boundary_distance(field: MetricField, pts: NDArray) -> NDArray:
-    """Metric length of the perpendicular segment from each point to the nearest side ``(n,)``."""
+def _boundary_distance(field: MetricField, pts: NDArray, reach: NDArray | None = None) -> NDArray:
+    """Metric length of the perpendicular segment from each point to the nearest side ``(n,)``.
+
+    With ``reach`` ``(n,)``, a side farther than ``reach[i]`` (Euclidean) is not measured
+    (its length counts as inf): the caller knows it is far enough.
+    """
     xmin, ymin, xmax, ymax = field.box
-    feet = [
-        np.column_stack([pts[:, 0], np.full(len(pts), ymin)]),
-        np.column_stack([np.full(len(pts), xmax), pts[:, 1]]),
-        np.column_stack([pts[:, 0], np.full(len(pts), ymax)]),
-        np.column_stack([np.full(len(pts), xmin), pts[:, 1]]),
+    x, y = pts[:, 0], pts[:, 1]
+    sides = [
+        (np.column_stack([x, np.full(len(pts), ymin)]), y - ymin),
+        (np.column_stack([np.full(len(pts), xmax), y]), xmax - x),
+        (np.column_stack([x, np.full(len(pts), ymax)]), ymax - y),
+        (np.column_stack([np.full(len(pts), xmin), y]), x - xmin),
     ]
-    d = [parabola_length_rule(field, pts, f, 0.5 * (pts + f), segments=2, order=4) for f in feet]
-    return np.min(d, axis=0)
+    out = np.full(len(pts), np.inf)
+    for feet, gap in sides:
+        rows = np.arange(len(pts)) if reach is None else np.flatnonzero(gap < reach)
+        if rows.size:
+            a, f = pts[rows], feet[rows]
+            d = parabola_length_rule(field, a, f, 0.5 * (a + f), segments=2, order=4)
+            out[rows] = np.minimum(out[rows], d)
+    return out
 
 
 def _greedy_independent(n: int, i: NDArray, j: NDArray) -> NDArray:
@@ -273,11 +284,17 @@ def accept_candidates(
     cand = np.asarray(cand, dtype=float).reshape(-1, 2)
     inside = (cand[:, 0] > xmin) & (cand[:, 0] < xmax) & (cand[:, 1] > ymin) & (cand[:, 1] < ymax)
     cand = cand[inside]
-    if len(cand):
-        cand = cand[_boundary_distance(field, cand) >= opt.boundary_dist]
     if len(cand) == 0:
         return cand
     radius = search_halfwidths(field, cand, opt.search * opt.min_dist)
+    # the box allows the sizes to grow by g = half-width / (min_dist × sampled size): a
+    # side farther than boundary_dist × g × size = half-width × boundary_dist / min_dist
+    # is at least boundary_dist away (as a point outside the box is min_dist away)
+    reach = radius[:, 0] * (opt.boundary_dist / opt.min_dist)
+    near = _boundary_distance(field, cand, reach) >= opt.boundary_dist
+    cand, radius = cand[near], radius[near]
+    if len(cand) == 0:
+        return cand
     # against the points kept so far
     bad = close_to_index(field, index, cand, radius, opt.min_dist)
     cand, radius = cand[~bad], radius[~bad]
