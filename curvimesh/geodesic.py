@@ -56,6 +56,24 @@ def _acceleration(field: MetricField, x: NDArray, v: NDArray) -> NDArray:
     return -np.einsum("pikl,pk,pl->pi", gam, v, v)
 
 
+def geodesic_alpha(field: MetricField, x0: NDArray, x1: NDArray) -> NDArray:
+    """A guess ``(n,)`` of the offset α of the shortest parabola from x₀ to x₁: the α whose
+    parabola bends as the geodesic does at the chord's middle.
+
+    The parabola x(t) = x₀ + t d + 4t(1−t) α d⊥ (d = x₁ − x₀, d⊥ = d × e₃) has
+    ẍ = −8α d⊥; a geodesic through the middle with velocity d has
+    ẍ = −Γ(d, d) + λ d (paper equation (2), any parametrisation), so
+    α = Γ(d, d)·d⊥ / (8 |d|²). Exact to first order in the metric's variation;
+    NaN where the metric is undefined at the middle.
+    """
+    d = np.asarray(x1, dtype=float) - np.asarray(x0, dtype=float)
+    acc = _acceleration(field, 0.5 * (np.asarray(x0, dtype=float) + x1), d)  # −Γ(d, d)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return -np.einsum("pi,pi->p", acc, bisector_normal(x0, x1)) / (
+            8.0 * np.einsum("pi,pi->p", d, d)
+        )
+
+
 def unit_velocity(field: MetricField, x: NDArray, direction: NDArray) -> NDArray:
     """Scale directions ``(n, 2)`` to unit speed in the metric at x: vᵀ g(x) v = 1."""
     g = field.tensor(x, check=False)

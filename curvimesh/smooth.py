@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from curvimesh.freenode import shortest_parabola
+from curvimesh.geodesic import geodesic_alpha
 from curvimesh.mesh import Mesh, signed_areas
 from curvimesh.metric import MetricField
 from curvimesh.triangulate import metric_delaunay
@@ -41,7 +42,10 @@ def edge_parabola_lengths(
     field: MetricField, points: NDArray, edges: NDArray, start: NDArray | None = None
 ) -> tuple[NDArray, NDArray]:
     """Lengths ``(E,)`` of the shortest parabolas of edges ``(E, 2)`` (search accuracy)
-    and their α ``(E,)``, searched from the guesses ``start`` ``(E,)`` of α if given."""
+    and their α ``(E,)``, searched from the guesses ``start`` ``(E,)`` of α if given,
+    else from the geodesic's bend at each chord's middle (:func:`geodesic_alpha`)."""
+    if start is None:
+        start = geodesic_alpha(field, points[edges[:, 0]], points[edges[:, 1]])
     par = shortest_parabola(
         field,
         points[edges[:, 0]],

@@ -10,6 +10,7 @@ import sympy
 
 from curvimesh.geodesic import (
     christoffel,
+    geodesic_alpha,
     parabola_length,
     shoot,
     shoot_fixed,
@@ -82,6 +83,26 @@ def test_constant_metric_shortest_parabola_is_the_segment(rng):
     assert np.abs(par.alpha).max() < 1e-3
     np.testing.assert_allclose(par.length, exact, rtol=1e-6)
     np.testing.assert_allclose(par.mid, 0.5 * (a + b), atol=1e-3 * np.abs(d).max())
+
+
+def test_geodesic_alpha_is_zero_in_a_constant_metric_and_the_circles_sagitta_in_the_half_plane(
+    rng,
+):
+    a = rng.uniform(-1, 1, (50, 2))
+    b = rng.uniform(-1, 1, (50, 2))
+    assert np.abs(geodesic_alpha(constant_field(9.0, 2.0, 1.0), a, b)).max() < 1e-12
+    # a horizontal chord of half-width h at height y: the geodesic is the circle about
+    # (x, 0) through its ends, whose middle is sqrt(h² + y²) − y = h²/(2y) − h⁴/(8y³) + …
+    # above the chord; the guess bends the parabola's middle node h²/(2y) up
+    x = rng.uniform(-1, 1, 40)
+    y = rng.uniform(0.5, 3, 40)
+    h = rng.uniform(0.01, 0.3, 40)
+    x0, x1 = np.column_stack([x - h, y]), np.column_stack([x + h, y])
+    alpha = geodesic_alpha(poincare(), x0, x1)
+    rise = -alpha * 2 * h  # the middle node (x, y) + α (0, −2h)
+    sagitta = np.sqrt(h**2 + y**2) - y
+    np.testing.assert_allclose(rise, h**2 / (2 * y), rtol=1e-12)
+    assert np.all(np.abs(rise - sagitta) <= 1.01 * h**4 / (8 * y**3))
 
 
 def test_half_plane_shot_stays_on_its_circle_and_has_the_analytic_length(rng):
