@@ -89,3 +89,20 @@ metric:
     x0, x1, xm = corners[:, 0], corners[:, 1], mids[:, 0]
     first = edge_lengths_fast(fld, x0, x1, xm)
     assert np.array_equal(edge_lengths_fast(fld, x0[::-1], x1[::-1], xm[::-1]), first[::-1])
+
+
+def test_adapt_gives_the_same_mesh_without_the_tables(monkeypatch):
+    """The tables only spare work: the toy's mesh is the same, bit for bit, when every
+    area and length is computed afresh."""
+    from pathlib import Path
+
+    import curvimesh.quality as quality
+    from curvimesh.adapt import adapt
+    from curvimesh.metric import load_metric
+
+    path = Path(__file__).resolve().parents[1] / "metrics" / "toy.yaml"
+    with_tables = adapt(load_metric(path)).mesh
+    monkeypatch.setattr(quality, "memoised", lambda table, rows, compute: compute(rows))
+    without = adapt(load_metric(path)).mesh
+    assert np.array_equal(with_tables.points, without.points)
+    assert np.array_equal(with_tables.triangles, without.triangles)
