@@ -117,7 +117,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import sympy
 from numpy.typing import NDArray
-from scipy.optimize import brentq
 
 from curvimesh import kernels
 from curvimesh.errors import ExpressionError, InputError, MetricError
@@ -523,6 +522,8 @@ class InterpolationMetric:
             )
         if n_low == n_high:
             return low
+        from scipy.optimize import brentq  # here: scipy.optimize takes 0.1 s to import
+
         log_scale = brentq(
             lambda s: math.log(vertices(s)) - math.log(target), low, high, xtol=1e-12, rtol=1e-14
         )
