@@ -69,12 +69,19 @@ _JIT = {"cache": True, "error_model": "numpy", "nogil": True}
 #: on one thread).
 PARALLEL_ROWS = 500
 
+#: The same for the kernels whose rows are searches (shortest parabolas, closeness
+#: tests, shots: tens to hundreds of metric evaluations a row).
+SEARCH_PARALLEL_ROWS = 64
 
-def _row_kernel(py: Callable) -> Callable:
+
+def _row_kernel(py: Callable | None = None, *, min_rows: int | None = None) -> Callable:
     """A kernel whose rows (``prange``) are independent, compiled twice: serial, and
-    parallel for calls of at least :data:`PARALLEL_ROWS` rows (same results).
+    parallel for calls of at least ``min_rows`` rows (default :data:`PARALLEL_ROWS`;
+    same results).
 
     The rows are those of the second argument (after the metric function)."""
+    if py is None:
+        return lambda f: _row_kernel(f, min_rows=min_rows)
     serial = njit(**_JIT)(py)
     # a twin of its own name: numba's disk cache indexes functions by qualified name
     # and signature, so the two variants of one function would load each other's code
@@ -83,7 +90,7 @@ def _row_kernel(py: Callable) -> Callable:
     parallel = njit(parallel=True, **_JIT)(twin)
 
     def run(fn, rows, *args):
-        big = rows.shape[0] >= PARALLEL_ROWS and numba.get_num_threads() > 1
+        big = rows.shape[0] >= (min_rows or PARALLEL_ROWS) and numba.get_num_threads() > 1
         return (parallel if big else serial)(fn, rows, *args)
 
     run.__doc__, run.__name__ = py.__doc__, py.__name__
@@ -767,7 +774,7 @@ def _search_near(fn, ax, ay, bx, by, start, grid, t, w, tol, max_iter):
     return a, f
 
 
-@_row_kernel
+@_row_kernel(min_rows=SEARCH_PARALLEL_ROWS)
 def shortest_parabolas(fn, x0, x1, grid, t, w, tol, max_iter, alpha, length):
     """The search of :func:`curvimesh.geodesic.shortest_parabola`, one row at a time
     (:func:`_search`): writes α and the rule's length at it."""
@@ -778,7 +785,7 @@ def shortest_parabolas(fn, x0, x1, grid, t, w, tol, max_iter, alpha, length):
         )  # fmt: skip
 
 
-@_row_kernel
+@_row_kernel(min_rows=SEARCH_PARALLEL_ROWS)
 def shortest_parabolas_near(fn, x0, x1, start, grid, t, w, tol, max_iter, alpha, length):
     """The search of :func:`curvimesh.geodesic.shortest_parabola` from guesses ``start``
     of α (NaN: none), one row at a time (:func:`_search_near`)."""
@@ -788,7 +795,7 @@ def shortest_parabolas_near(fn, x0, x1, start, grid, t, w, tol, max_iter, alpha,
         )
 
 
-@_row_kernel
+@_row_kernel(min_rows=SEARCH_PARALLEL_ROWS)
 def classify_parabolas(fn, x0, x1, grid, t, w, tol, max_iter, short, long, verdict):
     """Whether the shortest parabola of each row is below ``short`` (−1), above
     ``long[i]`` (+1) or neither (0), by :func:`_search` stopping at the verdict."""
@@ -866,7 +873,7 @@ def _nearest_close(
     return False
 
 
-@_row_kernel
+@_row_kernel(min_rows=SEARCH_PARALLEL_ROWS)
 def close_candidates(
     fn, cand, g_cand, pts, offsets, hits, short, margin, probes, ts, ws, grid, t, w, tol, out
 ):
@@ -978,7 +985,7 @@ def _dp_step(fn, x, y, vx, vy, h):
     return nx, ny, nvx, nvy, err
 
 
-@_row_kernel
+@_row_kernel(min_rows=SEARCH_PARALLEL_ROWS)
 def shoot(fn, x0, v0, total, tol, max_iterations, end, vel, ok):
     """:func:`curvimesh.geodesic.shoot`'s adaptive Dormand–Prince loop, one row at a time.
 
@@ -1393,7 +1400,7 @@ def rtree_fill(mins, maxs, boxes, first, count, leaf, ids, xy, roots, offsets, h
         seg[:n].sort()
 
 
-@_row_kernel
+@_row_kernel(min_rows=SEARCH_PARALLEL_ROWS)
 def close_in_index(
     fn, cand, g_cand, mins, maxs, exclude, boxes, first, count, leaf, ids, xy, roots, pts,
     short, margin, probes, ts, ws, grid, t, w, tol, out,
