@@ -1472,6 +1472,42 @@ def _slot(words, i, mask):
     return h & mask
 
 
+_G0 = np.uint64(0x6A09E667F3BCC909)
+_GM = np.uint64(0xC4CEB9FE1A85EC53)
+_F1 = np.uint64(0xFF51AFD7ED558CCD)
+_S29 = np.uint64(29)
+
+
+@njit(**_JIT)
+def _fmix(h):
+    """MurmurHash3's 64-bit finaliser (Appleby 2011)."""
+    h ^= h >> _S33
+    h *= _F1
+    h ^= h >> _S33
+    h *= _GM
+    h ^= h >> _S33
+    return h
+
+
+@njit(**_JIT)
+def row_fingerprints(words, out):
+    """Two 64-bit hashes ``out`` ``(n, 2)`` of each row of ``words`` ``(n, w)`` (uint64, the
+    bits of float rows): the words folded by two multiply–xorshift chains of different
+    constants, each finished by :func:`_fmix`. Distinct rows share both with a chance
+    of about 2⁻¹²⁸ per pair."""
+    for i in range(words.shape[0]):
+        h = _H0
+        g = _G0
+        for k in range(words.shape[1]):
+            w = words[i, k]
+            h = (h ^ w) * _HM
+            h = h ^ (h >> _S33)
+            g = (g ^ w) * _GM
+            g = g ^ (g >> _S29)
+        out[i, 0] = _fmix(h)
+        out[i, 1] = _fmix(g ^ np.uint64(words.shape[1]))
+
+
 @njit(**_JIT)
 def _probe(keys, filled, words, i):
     """The slot holding row ``i`` of ``words``, or the empty slot where it would go
@@ -1490,16 +1526,27 @@ def _probe(keys, filled, words, i):
     return j
 
 
-@njit(**_JIT)
-def memo_find(keys, values, filled, words, out, found):
-    """For each row of ``words`` ``(n, w)`` (uint64, the bits of float rows), its value
-    in the table (``keys`` ``(cap, w)``, ``values`` ``(cap,)``, ``filled`` ``(cap,)``,
-    cap a power of two) into ``out`` and whether it is there into ``found``."""
-    for i in range(words.shape[0]):
+def _memo_find(keys, values, filled, words, out, found):
+    for i in prange(words.shape[0]):
         j = _probe(keys, filled, words, i)
         found[i] = filled[j]
         if filled[j]:
             out[i] = values[j]
+
+
+_memo_find_serial = njit(**_JIT)(_memo_find)
+_memo_find_parallel = njit(parallel=True, **_JIT)(
+    FunctionType(_memo_find.__code__, _memo_find.__globals__, "_memo_find_parallel")
+)
+
+
+def memo_find(keys, values, filled, words, out, found):
+    """For each row of ``words`` ``(n, w)`` (uint64, the bits of float rows), its value
+    in the table (``keys`` ``(cap, w)``, ``values`` ``(cap,)``, ``filled`` ``(cap,)``,
+    cap a power of two) into ``out`` and whether it is there into ``found``; the rows
+    spread over the threads from :data:`PARALLEL_ROWS` rows (lookups only read)."""
+    big = words.shape[0] >= PARALLEL_ROWS and numba.get_num_threads() > 1
+    (_memo_find_parallel if big else _memo_find_serial)(keys, values, filled, words, out, found)
 
 
 @njit(**_JIT)
@@ -1512,7 +1559,8 @@ def memo_insert(keys, values, filled, words, vals):
         j = _probe(keys, filled, words, i)
         if not filled[j]:
             filled[j] = True
-            keys[j, :] = words[i, :]
+            for k in range(words.shape[1]):
+                keys[j, k] = words[i, k]
             values[j] = vals[i]
             added += 1
     return added

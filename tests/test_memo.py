@@ -53,6 +53,11 @@ def test_a_full_table_starts_again(monkeypatch):
     assert not table.find(first)[1].any()
     out, found = table.find(second)
     assert found.all() and np.array_equal(out, -np.arange(1000.0))
+    # a call with more rows than half the slots is not kept, and the table stays
+    big = np.column_stack([np.arange(1100.0), np.full(1100, 7.0)])
+    table.add(big, np.zeros(1100))
+    assert len(table) == 1000 and not table.find(big)[1].any()
+    assert table.find(second)[1].all()
 
 
 def test_memoised_computes_only_the_rows_it_has_not_seen():
@@ -70,7 +75,10 @@ def test_memoised_computes_only_the_rows_it_has_not_seen():
     assert calls == [2, 1]
 
 
-def test_remembered_areas_and_lengths_are_the_computed_ones():
+def test_remembered_areas_and_lengths_are_the_computed_ones(monkeypatch):
+    import curvimesh.quality as quality
+
+    monkeypatch.setattr(quality, "MEMO_MIN_NS", 0.0)  # remember, however cheap the metric
     text = """
 domain: {box: [[-1, -1], [1, 1]]}
 metric:
@@ -81,6 +89,7 @@ metric:
     mids = (corners + np.roll(corners, -1, axis=1)) / 2 + rng.normal(scale=0.01, size=(200, 3, 2))
     nodes = np.concatenate([corners, mids], axis=1)
     fld, fresh = load_metric_text(text), load_metric_text(text)
+    assert quality.remembers(fld)
     whole = metric_areas(fld, nodes)
     # half of them again, in another order, among new ones: the same numbers
     again = np.concatenate([nodes[150:], nodes[::2]])
@@ -101,8 +110,27 @@ def test_adapt_gives_the_same_mesh_without_the_tables(monkeypatch):
     from curvimesh.metric import load_metric
 
     path = Path(__file__).resolve().parents[1] / "metrics" / "toy.yaml"
-    with_tables = adapt(load_metric(path)).mesh
+    monkeypatch.setattr(quality, "MEMO_MIN_NS", 0.0)  # the toy is cheap: remember anyway
+    fld = load_metric(path)
+    assert quality.remembers(fld)
+    with_tables = adapt(fld).mesh
     monkeypatch.setattr(quality, "memoised", lambda table, rows, compute: compute(rows))
     without = adapt(load_metric(path)).mesh
     assert np.array_equal(with_tables.points, without.points)
     assert np.array_equal(with_tables.triangles, without.triangles)
+
+
+def test_only_metrics_slow_to_evaluate_are_remembered(monkeypatch):
+    import dataclasses
+
+    import curvimesh.quality as quality
+
+    text = "domain: {box: [[0, 0], [1, 1]]}\nmetric: {eigen: {sizes: [0.1, 0.2], angle: x}}\n"
+    monkeypatch.setattr(quality, "MEMO_MIN_NS", float("inf"))
+    fld = load_metric_text(text)
+    assert not quality.remembers(fld)
+    assert quality.remembers(dataclasses.replace(fld, jit=False))  # numpy: microseconds
+    monkeypatch.setattr(quality, "MEMO_MIN_NS", 0.0)
+    assert not quality.remembers(fld)  # decided once per field (equal fields share it)
+    assert not quality.remembers(load_metric_text(text))
+    assert quality.remembers(load_metric_text(text.replace("0.2", "0.3")))
