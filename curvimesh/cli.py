@@ -69,6 +69,13 @@ def _fail(msg: str, code: int) -> None:
     sys.exit(code)
 
 
+def _quiet_finalizers() -> None:
+    """After an interrupt, let the finalizers of objects it cut short fail silently: a
+    Ctrl-C while numba loads machine code leaves llvmlite objects half built, whose
+    ``__del__`` then prints "Exception ignored ... Traceback" at exit."""
+    sys.unraisablehook = lambda _unraisable: None
+
+
 def command(fn: Callable) -> Callable:
     """Run a command body, turning our errors into one line and an exit code."""
 
@@ -89,8 +96,10 @@ def command(fn: Callable) -> Callable:
                 traceback.print_exc()
             _fail(str(exc), exc.exit_code)
         except KeyboardInterrupt:
+            _quiet_finalizers()
             _fail("interrupted", 130)
         except _Terminated:
+            _quiet_finalizers()
             _fail("terminated", 143)
         except (MemoryError, RecursionError) as exc:
             if verbose:
