@@ -74,14 +74,17 @@ PARALLEL_ROWS = 500
 SEARCH_PARALLEL_ROWS = 64
 
 
-def _row_kernel(py: Callable | None = None, *, min_rows: int | None = None) -> Callable:
+def _row_kernel(
+    py: Callable | None = None, *, min_rows: int | None = None, rows_arg: int = 1
+) -> Callable:
     """A kernel whose rows (``prange``) are independent, compiled twice: serial, and
     parallel for calls of at least ``min_rows`` rows (default :data:`PARALLEL_ROWS`;
     same results).
 
-    The rows are those of the second argument (after the metric function)."""
+    The rows are those of argument ``rows_arg`` (default the second, after the metric
+    function)."""
     if py is None:
-        return lambda f: _row_kernel(f, min_rows=min_rows)
+        return lambda f: _row_kernel(f, min_rows=min_rows, rows_arg=rows_arg)
     serial = njit(**_JIT)(py)
     # a twin of its own name: numba's disk cache indexes functions by qualified name
     # and signature, so the two variants of one function would load each other's code
@@ -89,9 +92,10 @@ def _row_kernel(py: Callable | None = None, *, min_rows: int | None = None) -> C
     twin.__qualname__ = f"{py.__qualname__}_parallel"
     parallel = njit(parallel=True, **_JIT)(twin)
 
-    def run(fn, rows, *args):
-        big = rows.shape[0] >= (min_rows or PARALLEL_ROWS) and numba.get_num_threads() > 1
-        return (parallel if big else serial)(fn, rows, *args)
+    def run(*args):
+        n = args[rows_arg].shape[0]
+        big = n >= (min_rows or PARALLEL_ROWS) and numba.get_num_threads() > 1
+        return (parallel if big else serial)(*args)
 
     run.__doc__, run.__name__ = py.__doc__, py.__name__
     run.serial, run.parallel = serial, parallel
@@ -1474,7 +1478,6 @@ def _slot(words, i, mask):
 
 _G0 = np.uint64(0x6A09E667F3BCC909)
 _GM = np.uint64(0xC4CEB9FE1A85EC53)
-_F1 = np.uint64(0xFF51AFD7ED558CCD)
 _S29 = np.uint64(29)
 
 
@@ -1482,7 +1485,7 @@ _S29 = np.uint64(29)
 def _fmix(h):
     """MurmurHash3's 64-bit finaliser (Appleby 2011)."""
     h ^= h >> _S33
-    h *= _F1
+    h *= _HM
     h ^= h >> _S33
     h *= _GM
     h ^= h >> _S33
@@ -1526,27 +1529,16 @@ def _probe(keys, filled, words, i):
     return j
 
 
-def _memo_find(keys, values, filled, words, out, found):
+@_row_kernel(rows_arg=3)
+def memo_find(keys, values, filled, words, out, found):
+    """For each row of ``words`` ``(n, w)`` (uint64), its value in the table (``keys``
+    ``(cap, w)``, ``values`` ``(cap,)``, ``filled`` ``(cap,)``, cap a power of two) into
+    ``out`` and whether it is there into ``found`` (lookups only read the table)."""
     for i in prange(words.shape[0]):
         j = _probe(keys, filled, words, i)
         found[i] = filled[j]
         if filled[j]:
             out[i] = values[j]
-
-
-_memo_find_serial = njit(**_JIT)(_memo_find)
-_memo_find_parallel = njit(parallel=True, **_JIT)(
-    FunctionType(_memo_find.__code__, _memo_find.__globals__, "_memo_find_parallel")
-)
-
-
-def memo_find(keys, values, filled, words, out, found):
-    """For each row of ``words`` ``(n, w)`` (uint64, the bits of float rows), its value
-    in the table (``keys`` ``(cap, w)``, ``values`` ``(cap,)``, ``filled`` ``(cap,)``,
-    cap a power of two) into ``out`` and whether it is there into ``found``; the rows
-    spread over the threads from :data:`PARALLEL_ROWS` rows (lookups only read)."""
-    big = words.shape[0] >= PARALLEL_ROWS and numba.get_num_threads() > 1
-    (_memo_find_parallel if big else _memo_find_serial)(keys, values, filled, words, out, found)
 
 
 @njit(**_JIT)
