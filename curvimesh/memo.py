@@ -49,7 +49,7 @@ class RowMemo:
     def __len__(self) -> int:
         return self.count
 
-    def _words(self, rows: NDArray) -> NDArray:
+    def _fingerprints(self, rows: NDArray) -> NDArray:
         """The fingerprints ``(n, 2)`` of ``rows``."""
         rows = np.ascontiguousarray(rows, dtype=np.float64).reshape(-1, self.width)
         out = np.empty((len(rows), 2), dtype=np.uint64)
@@ -59,20 +59,20 @@ class RowMemo:
     def find(self, rows: NDArray) -> tuple[NDArray, NDArray]:
         """Values ``(n,)`` of ``rows`` ``(n, width)`` (NaN where absent) and whether each is
         there ``(n,)``."""
-        words = self._words(rows)
-        out = np.full(len(words), np.nan)
-        found = np.zeros(len(words), dtype=np.bool_)
+        keys = self._fingerprints(rows)
+        out = np.full(len(keys), np.nan)
+        found = np.zeros(len(keys), dtype=np.bool_)
         if self.count:
-            kernels.memo_find(self.keys, self.values, self.filled, words, out, found)
+            kernels.memo_find(self.keys, self.values, self.filled, keys, out, found)
         return out, found
 
     def add(self, rows: NDArray, values: NDArray) -> None:
         """Remember ``values`` ``(n,)`` of ``rows`` ``(n, width)``."""
-        words = self._words(rows)
-        values = np.ascontiguousarray(values, dtype=np.float64)
-        if 2 * len(words) > self.max_slots:  # more rows than a table holds: not kept
+        if 2 * len(rows) > self.max_slots:  # more rows than a table holds: not kept
             return
-        need = 2 * (self.count + len(words))
+        keys = self._fingerprints(rows)
+        values = np.ascontiguousarray(values, dtype=np.float64)
+        need = 2 * (self.count + len(keys))
         if need > len(self.filled):
             slots = len(self.filled)
             while slots < need and slots < self.max_slots:
@@ -80,12 +80,16 @@ class RowMemo:
             if need > slots:  # full: start again
                 self._allocate(slots)
             else:
-                keys, vals, filled = self.keys, self.values, self.filled
+                old_keys, old_values, old_filled = self.keys, self.values, self.filled
                 self._allocate(slots)
                 self.count = kernels.memo_insert(
-                    self.keys, self.values, self.filled, keys[filled], vals[filled]
+                    self.keys,
+                    self.values,
+                    self.filled,
+                    old_keys[old_filled],
+                    old_values[old_filled],
                 )
-        self.count += kernels.memo_insert(self.keys, self.values, self.filled, words, values)
+        self.count += kernels.memo_insert(self.keys, self.values, self.filled, keys, values)
 
 
 _TABLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
