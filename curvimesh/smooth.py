@@ -59,13 +59,10 @@ def edge_parabola_lengths(
     return par.length, par.alpha
 
 
-def carried_alpha(old_edges: NDArray, old_alpha: NDArray, edges: NDArray, n: int) -> NDArray:
-    """α ``(E,)`` of ``edges`` ``(E, 2)`` from the same edges in ``old_edges`` ``(E', 2)``
-    (both sorted, as :attr:`Mesh.edges`, ``n`` points), NaN for the new ones."""
-    return _carried(old_edges, old_alpha, edges, n)
-
-
-def _carried(old_edges: NDArray, values: NDArray, edges: NDArray, n: int) -> NDArray:
+def carried(old_edges: NDArray, values: NDArray, edges: NDArray, n: int) -> NDArray:
+    """Values ``(E,)`` of ``edges`` ``(E, 2)`` from the same edges in ``old_edges``
+    ``(E', 2)`` (``values`` ``(E',)``; both sorted, as :attr:`Mesh.edges`, ``n`` points),
+    NaN for the new ones."""
     old_keys = old_edges[:, 0] * n + old_edges[:, 1]
     keys = edges[:, 0] * n + edges[:, 1]
     pos = np.minimum(np.searchsorted(old_keys, keys), len(old_keys) - 1)
@@ -186,8 +183,8 @@ def relocate(
         # the edges a flip made are searched from scratch; the others keep their
         # lengths at these positions (measured by the undo pass)
         old_edges, e = e, cur.edges
-        length = _carried(old_edges, length, e, n)
-        alpha = _carried(old_edges, alpha, e, n)
+        length = carried(old_edges, length, e, n)
+        alpha = carried(old_edges, alpha, e, n)
         fresh = np.flatnonzero(np.isnan(alpha))
         if fresh.size:
             length[fresh], alpha[fresh] = edge_parabola_lengths(field, pts, e[fresh])
