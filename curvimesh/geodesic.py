@@ -56,6 +56,15 @@ def _acceleration(field: MetricField, x: NDArray, v: NDArray) -> NDArray:
     return -np.einsum("pikl,pk,pl->pi", gam, v, v)
 
 
+def offset_alpha(x0: NDArray, x1: NDArray, offset: NDArray) -> NDArray:
+    """The α ``(n,)`` of the middle node (x₀ + x₁)/2 + ``offset`` ``(n, 2)``, projected on
+    the bisector: offset·d⊥ / |d|² (d = x₁ − x₀, d⊥ = d × e₃; the inverse of
+    :func:`parabola_midnode` for offsets along d⊥); NaN or inf where x₀ = x₁."""
+    d = np.asarray(x1, dtype=float) - np.asarray(x0, dtype=float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.einsum("pi,pi->p", offset, bisector_normal(x0, x1)) / np.einsum("pi,pi->p", d, d)
+
+
 def geodesic_alpha(field: MetricField, x0: NDArray, x1: NDArray) -> NDArray:
     """A guess ``(n,)`` of the offset α of the shortest parabola from x₀ to x₁: the α whose
     parabola bends as the geodesic does at the chord's middle.
@@ -63,15 +72,13 @@ def geodesic_alpha(field: MetricField, x0: NDArray, x1: NDArray) -> NDArray:
     The parabola x(t) = x₀ + t d + 4t(1−t) α d⊥ (d = x₁ − x₀, d⊥ = d × e₃) has
     ẍ = −8α d⊥; a geodesic through the middle with velocity d has
     ẍ = −Γ(d, d) + λ d (paper equation (2), any parametrisation), so
-    α = Γ(d, d)·d⊥ / (8 |d|²). Exact to first order in the metric's variation;
+    α = Γ(d, d)·d⊥ / (8 |d|²): the middle node offset by Γ(d, d)/8
+    (:func:`offset_alpha`). Exact to first order in the metric's variation;
     NaN where the metric is undefined at the middle.
     """
-    d = np.asarray(x1, dtype=float) - np.asarray(x0, dtype=float)
-    acc = _acceleration(field, 0.5 * (np.asarray(x0, dtype=float) + x1), d)  # −Γ(d, d)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return -np.einsum("pi,pi->p", acc, bisector_normal(x0, x1)) / (
-            8.0 * np.einsum("pi,pi->p", d, d)
-        )
+    x0, x1 = np.asarray(x0, dtype=float), np.asarray(x1, dtype=float)
+    acc = _acceleration(field, 0.5 * (x0 + x1), x1 - x0)  # −Γ(d, d)
+    return offset_alpha(x0, x1, -0.125 * acc)
 
 
 def unit_velocity(field: MetricField, x: NDArray, direction: NDArray) -> NDArray:

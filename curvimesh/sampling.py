@@ -36,7 +36,7 @@ from curvimesh.boundary import BoundaryMesh
 from curvimesh.freenode import any_closer_in_index, parabola_verdicts, shortest_parabola
 from curvimesh.geodesic import (
     PAIR_BLOCK,
-    bisector_normal,
+    offset_alpha,
     parabola_length_rule,
     shoot,
     unit_velocity,
@@ -86,10 +86,10 @@ def principal_directions(field: MetricField, pts: NDArray) -> NDArray:
     return np.stack([v1, -v1, v2, -v2], axis=1)
 
 
-#: Where :func:`search_halfwidths` samples the largest size: the centre, the corners
-#: and the side midpoints of the box of the local largest size (in half-widths).
+#: Where :func:`search_halfwidths` samples the largest size besides the centre: the
+#: corners and the side midpoints of the box of the local largest size (in half-widths).
 _BOX_SAMPLES = np.array(
-    [[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [1, -1], [-1, 1], [-1, -1]], dtype=float
+    [[1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [1, -1], [-1, 1], [-1, -1]], dtype=float
 )
 
 #: Allowance of :func:`search_halfwidths` for the sizes' growth beyond the largest
@@ -246,11 +246,7 @@ def shortened_ends(
     v1 = v1 * spacing
     # the search starts from the α of the geodesic's own middle: the Hermite
     # cubic's at s = 1/2 is (x₀ + x₁)/2 + (v₀ − v₁)/8
-    d = x1 - starts
-    with np.errstate(invalid="ignore", divide="ignore"):
-        guess = np.einsum("ij,ij->i", 0.125 * (v0 - v1), bisector_normal(starts, x1)) / np.einsum(
-            "ij,ij->i", d, d
-        )
+    guess = offset_alpha(starts, x1, 0.125 * (v0 - v1))
     guess[~np.isfinite(guess)] = 0.0
     par = shortest_parabola(
         field,
