@@ -57,13 +57,25 @@ def test_constant_aniso_is_size_001_along_30_degrees_and_02_across():
     assert np.allclose(g, g[0], rtol=1e-12)
 
 
-def test_boundary_layer_sizes_grow_linearly_from_the_wall():
-    fld = load_metric(METRICS / "boundary_layer.yaml")
+@pytest.mark.parametrize(
+    ("name", "along", "across", "rtol"),
+    [
+        ("boundary_layer", 0.1, lambda y: 0.001 + 0.1 * y, 1e-12),  # linear from the wall
+        (
+            "wall_layer_steep",
+            0.08,
+            lambda y: 0.08 - (0.08 - 0.00008) * np.exp(-y / 0.15),  # exponential
+            1e-10,
+        ),
+    ],
+)
+def test_wall_layer_sizes_follow_their_law_from_the_wall(name, along, across, rtol):
+    fld = load_metric(METRICS / f"{name}.yaml")
     pts = inside(fld.box, 200)
     g = fld.tensor(pts)
-    assert np.allclose(size_along(g, unit(np.zeros(len(pts)))), 0.1, rtol=1e-12)
-    across = size_along(g, unit(np.full(len(pts), math.pi / 2)))
-    assert np.allclose(across, 0.001 + 0.1 * pts[:, 1], rtol=1e-12)
+    assert np.allclose(size_along(g, unit(np.zeros(len(pts)))), along, rtol=1e-12)
+    got = size_along(g, unit(np.full(len(pts), math.pi / 2)))
+    assert np.allclose(got, across(pts[:, 1]), rtol=rtol)
 
 
 def test_concentric_is_radial_002_tangential_01():
@@ -185,12 +197,3 @@ def test_the_repeated_passes_leave_no_worse_a_mesh_than_one_pass():
     rep = mesh_report(fld, again.mesh)
     assert rep["edge_length"]["max"] == pytest.approx(after.max_length, rel=1e-4)
     assert rep["quality"]["min"] == pytest.approx(after.min_quality, rel=1e-4)
-
-
-def test_wall_layer_steep_grows_exponentially_from_the_wall():
-    fld = load_metric(METRICS / "wall_layer_steep.yaml")
-    pts = inside(fld.box, 200)
-    g = fld.tensor(pts)
-    assert np.allclose(size_along(g, unit(np.zeros(len(pts)))), 0.08, rtol=1e-12)
-    across = size_along(g, unit(np.full(len(pts), math.pi / 2)))
-    assert np.allclose(across, 0.08 - (0.08 - 0.00008) * np.exp(-pts[:, 1] / 0.15), rtol=1e-10)
