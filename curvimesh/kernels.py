@@ -125,6 +125,19 @@ def _re(z):
 
 
 @njit(**_JIT)
+def _nested(a11, a12, a22, b11, b12, b22):
+    """Which metric contains the other: 1 if M2 − M1 is positive semidefinite (M2
+    whole is the intersection), −1 if negative semidefinite (M1 whole), 0 otherwise
+    (decided on real parts: det(M2 − M1) ≥ 0 and the sign of its trace)."""
+    d11 = _re(b11) - _re(a11)
+    d12 = _re(b12) - _re(a12)
+    d22 = _re(b22) - _re(a22)
+    if d11 * d22 - d12 * d12 >= 0.0:
+        return 1 if d11 + d22 >= 0.0 else -1
+    return 0
+
+
+@njit(**_JIT)
 def intersect(a11, a12, a22, b11, b12, b22):
     """Metric intersection by simultaneous reduction, one point, real or complex.
 
@@ -133,42 +146,39 @@ def intersect(a11, a12, a22, b11, b12, b22):
     compiled metrics call it on reals; :func:`intersect_d` carries the same
     formula with its derivatives; with complex arguments it gives them by the
     complex step (the tests' reference for :func:`intersect_d`).
+
+    Nested metrics (:func:`_nested`) give the larger one, unchanged; otherwise
+    s₋ < 1 < s₊ and only s₊'s term differs from M1 (see the numpy twin).
     """
+    nested = _nested(a11, a12, a22, b11, b12, b22)
+    if nested > 0:
+        return b11, b12, b22
+    if nested < 0:
+        return a11, a12, a22
     qa = a11 * a22 - a12 * a12
     qb = -(a11 * b22 + a22 * b11 - 2.0 * a12 * b12)
     qc = b11 * b22 - b12 * b12
     disc = qb * qb - 4.0 * qa * qc
     inv2qa = 0.5 / qa
-    degenerate = _re(disc) <= 1e-10 * (_re(qb) * _re(qb))
-    if degenerate:
+    if _re(disc) <= 1e-10 * (_re(qb) * _re(qb)):  # degenerate: max(1, s) M1
         s0 = -qb * inv2qa
         big = s0 if _re(s0) > 1.0 else 1.0 + 0.0 * s0
         return big * a11, big * a12, big * a22
-    root = np.sqrt(disc)
-    o11 = 0.0 * qa
-    o12 = 0.0 * qa
-    o22 = 0.0 * qa
-    for k in range(2):
-        sgn = -1.0 if k == 0 else 1.0
-        s = (sgn * root - qb) * inv2qa
-        c11 = b11 - s * a11
-        c12 = b12 - s * a12
-        c22 = b22 - s * a22
-        if abs(_re(c11)) >= abs(_re(c22)):
-            v1 = -c12
-            v2 = c11
-        else:
-            v1 = c22
-            v2 = -c12
-        w1 = a11 * v1 + a12 * v2
-        w2 = a12 * v1 + a22 * v2
-        lam = v1 * w1 + v2 * w2
-        f = (s if _re(s) > 1.0 else 1.0 + 0.0 * s) / lam
-        fw1 = f * w1
-        o11 = o11 + fw1 * w1
-        o12 = o12 + fw1 * w2
-        o22 = o22 + f * w2 * w2
-    return o11, o12, o22
+    s = (np.sqrt(disc) - qb) * inv2qa  # s₊ (qa > 0)
+    c11 = b11 - s * a11
+    c12 = b12 - s * a12
+    c22 = b22 - s * a22
+    if abs(_re(c11)) >= abs(_re(c22)):
+        v1 = -c12
+        v2 = c11
+    else:
+        v1 = c22
+        v2 = -c12
+    w1 = a11 * v1 + a12 * v2
+    w2 = a12 * v1 + a22 * v2
+    f = (s - 1.0) / (v1 * w1 + v2 * w2)
+    fw1 = f * w1
+    return a11 + fw1 * w1, a12 + fw1 * w2, a22 + f * w2 * w2
 
 
 # Forward-mode arithmetic for intersect_d: a quantity u travels as the triple
@@ -235,23 +245,29 @@ def _d_max1(s):
 def intersect_d(a, b):
     """Intersection of two 9-tuples (g, ∂ₓg, ∂ᵧg) with its derivatives, forward mode.
 
-    The intersection I(M1, M2) of :func:`intersect` is a composition of
-    arithmetic and one square root: with q(s) = det(M2 − s M1) = qa s² + qb s + qc,
-    disc = qb² − 4 qa qc, the roots s = (∓√disc − qb) / (2 qa), for each s the null
-    vector v of C = M2 − s M1 (v = (−c12, c11) or (c22, −c12)), w = M1 v, λ = vᵀw,
-    and I = Σ max(s, 1) / λ · w wᵀ (max(s, 1) M1 where s1 ≈ s2). Its derivative
+    The intersection I(M1, M2) of :func:`intersect` is M2 or M1 itself where one
+    contains the other (their derivatives then are I's), and otherwise a
+    composition of arithmetic and one square root: with q(s) = det(M2 − s M1) =
+    qa s² + qb s + qc, disc = qb² − 4 qa qc, the larger root s₊ = (√disc − qb) / (2 qa),
+    the null vector v of C = M2 − s₊ M1 (v = (−c12, c11) or (c22, −c12)), w = M1 v,
+    λ = vᵀw, and I = M1 + (s₊ − 1) / λ · w wᵀ (max(s, 1) M1 where s1 ≈ s2). Its derivative
     along x_k is the directional derivative of that composition along (∂ₖM1, ∂ₖM2):
     every quantity u is carried with (∂ₓu, ∂ᵧu) and each line's chain rule gives
     theirs (e.g. ∂√disc = ∂disc / (2√disc), ∂(u/v) = (∂u − (u/v) ∂v) / v), both
-    directions in one pass over the shared values. The branches (degenerate case,
-    null-vector row, max(s, 1)) are chosen on the values, as :func:`intersect`
-    does, so the derivative is that of the branch selected at the point: where I
-    is not smooth, a one-sided derivative. The values are :func:`intersect`'s,
-    bit for bit; the derivatives are the complex step's of
+    directions in one pass over the shared values. The branches (nested metrics,
+    degenerate case, null-vector row, max(s, 1)) are chosen on the values, as
+    :func:`intersect` does, so the derivative is that of the branch selected at the
+    point: where I is not smooth, a one-sided derivative. The values are
+    :func:`intersect`'s, bit for bit; the derivatives are the complex step's of
     :func:`curvimesh.tensors.intersect_with_derivatives` to rounding (which the
-    two amplify alike where s1 ≈ s2). A non-finite derivative of M1 or M2 stays
-    in the derivatives (the complex step spread one along y into the values too).
+    two amplify alike where s1 ≈ s2). A non-finite derivative of the metric kept
+    stays in the derivatives (the complex step spread one along y into the values too).
     """
+    nested = _nested(a[0], a[1], a[2], b[0], b[1], b[2])
+    if nested > 0:
+        return b
+    if nested < 0:
+        return a
     a11, a12, a22 = _dual(a, 0), _dual(a, 1), _dual(a, 2)
     b11, b12, b22 = _dual(b, 0), _dual(b, 1), _dual(b, 2)
     qa = _d_sub(_d_mul(a11, a22), _d_mul(a12, a12))
@@ -266,26 +282,21 @@ def intersect_d(a, b):
         big = _d_max1(_d_mul(_d_scale(-1.0, qb), inv2qa))
         o11, o12, o22 = _d_mul(big, a11), _d_mul(big, a12), _d_mul(big, a22)
     else:
-        root = _d_sqrt(disc)
-        o11 = o12 = o22 = _d_scale(0.0, qa)
-        for k in range(2):
-            sgn = -1.0 if k == 0 else 1.0
-            s = _d_mul(_d_sub(_d_scale(sgn, root), qb), inv2qa)
-            c11 = _d_sub(b11, _d_mul(s, a11))
-            c12 = _d_sub(b12, _d_mul(s, a12))
-            c22 = _d_sub(b22, _d_mul(s, a22))
-            if abs(c11[0]) >= abs(c22[0]):
-                v1, v2 = _d_scale(-1.0, c12), c11
-            else:
-                v1, v2 = c22, _d_scale(-1.0, c12)
-            w1 = _d_add(_d_mul(a11, v1), _d_mul(a12, v2))
-            w2 = _d_add(_d_mul(a12, v1), _d_mul(a22, v2))
-            lam = _d_add(_d_mul(v1, w1), _d_mul(v2, w2))
-            f = _d_div(_d_max1(s), lam)
-            fw1 = _d_mul(f, w1)
-            o11 = _d_add(o11, _d_mul(fw1, w1))
-            o12 = _d_add(o12, _d_mul(fw1, w2))
-            o22 = _d_add(o22, _d_mul(_d_mul(f, w2), w2))
+        s = _d_mul(_d_sub(_d_sqrt(disc), qb), inv2qa)
+        c11 = _d_sub(b11, _d_mul(s, a11))
+        c12 = _d_sub(b12, _d_mul(s, a12))
+        c22 = _d_sub(b22, _d_mul(s, a22))
+        if abs(c11[0]) >= abs(c22[0]):
+            v1, v2 = _d_scale(-1.0, c12), c11
+        else:
+            v1, v2 = c22, _d_scale(-1.0, c12)
+        w1 = _d_add(_d_mul(a11, v1), _d_mul(a12, v2))
+        w2 = _d_add(_d_mul(a12, v1), _d_mul(a22, v2))
+        f = _d_div(_d_sub(s, (1.0, 0.0, 0.0)), _d_add(_d_mul(v1, w1), _d_mul(v2, w2)))
+        fw1 = _d_mul(f, w1)
+        o11 = _d_add(a11, _d_mul(fw1, w1))
+        o12 = _d_add(a12, _d_mul(fw1, w2))
+        o22 = _d_add(a22, _d_mul(_d_mul(f, w2), w2))
     return (
         o11[0], o12[0], o22[0],
         o11[1], o12[1], o22[1],

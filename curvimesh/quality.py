@@ -26,10 +26,11 @@ from curvimesh.metric import MetricField
 
 #: A metric whose compiled evaluation takes at least this many nanoseconds a point has
 #: its areas and edge lengths remembered (:func:`remembers`); below, looking a measure
-#: up costs about what computing it does (the toy, 24 ns a point: swap stage at 10⁵
-#: vertices 3.47 s without the tables, 3.74 s with; three toys, 113 ns: 1.40 s and
-#: 1.07 s at 10⁴).
-MEMO_MIN_NS = 60.0
+#: up costs about what computing it does. As :func:`remembers` times them: the toy,
+#: about 29 ns a point (swap stage at 10⁵ vertices 3.47 s without the tables, 3.74 s
+#: with); the three toys, about 70 ns (1.16 s and 0.82 s at 10⁴). The threshold is
+#: their geometric mean, 1.5 times from either.
+MEMO_MIN_NS = 45.0
 
 _REMEMBERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 

@@ -17,6 +17,7 @@ __all__ = [
     "intersect_components",
     "intersect_with_derivatives",
     "log_components",
+    "nested",
 ]
 
 
@@ -29,9 +30,13 @@ def intersect(m1: NDArray, m2: NDArray) -> NDArray:
 
         M = Σ_i max(1, s_i) / λ_i · (M1 v_i)(M1 v_i)ᵀ.
 
+    As Σ_i (M1 v_i)(M1 v_i)ᵀ / λ_i = M1 (the v_i are M1-orthogonal), this is M2
+    where both s_i ≥ 1 (M2 − M1 positive semidefinite), M1 where both are ≤ 1,
+    and M1 + (s₊ − 1) / λ₊ · (M1 v₊)(M1 v₊)ᵀ where s₋ < 1 < s₊ (one null vector).
+
     Works on real or complex arrays of shape (n, 2, 2) (complex inputs are
     used for complex-step derivatives; branches are chosen on real parts).
-    If the two metrics are proportional (s1 = s2 = s) the result is max(1, s) M1.
+    If the two metrics are nearly proportional (s1 ≈ s2 ≈ s) the result is max(1, s) M1.
 
     >>> a = np.array([[[1.0, 0.0], [0.0, 4.0]]]); b = np.array([[[4.0, 0.0], [0.0, 1.0]]])
     >>> intersect(a, b)[0].real.tolist()
@@ -45,10 +50,23 @@ def intersect(m1: NDArray, m2: NDArray) -> NDArray:
     return out
 
 
+def nested(a: tuple, b: tuple) -> tuple[NDArray, NDArray]:
+    """Rows where M2 contains M1 (M2 − M1 positive semidefinite) and where M1 contains
+    M2 (negative semidefinite), decided on real parts by det(M2 − M1) ≥ 0 and the
+    sign of its trace (as :func:`curvimesh.kernels._nested`)."""
+    d11 = b[0].real - a[0].real
+    d12 = b[1].real - a[1].real
+    d22 = b[2].real - a[2].real
+    semi = d11 * d22 - d12 * d12 >= 0.0
+    up = d11 + d22 >= 0.0
+    return semi & up, semi & ~up
+
+
 def intersect_components(a: tuple, b: tuple) -> tuple[NDArray, NDArray, NDArray]:
     """:func:`intersect` on components: a = (a11, a12, a22), b likewise, 1D arrays."""
     a11, a12, a22 = a
     b11, b12, b22 = b
+    take_b, take_a = nested(a, b)
     # det(M2 - s M1) = qa s² + qb s + qc
     qa = a11 * a22 - a12 * a12
     qb = -(a11 * b22 + a22 * b11 - 2.0 * a12 * b12)
@@ -57,30 +75,28 @@ def intersect_components(a: tuple, b: tuple) -> tuple[NDArray, NDArray, NDArray]
     # s1 ≈ s2 (M2 ≈ s M1): the eigenvectors are ill-conditioned, and rounding
     # makes disc ~1e-16 qb² of either sign; the result is max(1, s) M1 there
     degenerate = disc.real <= 1e-10 * (qb.real * qb.real)
-    root = np.sqrt(np.where(degenerate, 1.0, disc))
+    whole = take_a | take_b | degenerate
     inv2qa = 0.5 / qa
-    o11 = o12 = o22 = 0.0
-    for sign in (-1.0, 1.0):
-        s = (sign * root - qb) * inv2qa
-        # null vector of A = M2 - s M1 (symmetric, singular)
-        c11, c12, c22 = b11 - s * a11, b12 - s * a12, b22 - s * a22
-        use_first = np.abs(c11.real) >= np.abs(c22.real)
-        v1 = np.where(use_first, -c12, c22)
-        v2 = np.where(use_first, c11, -c12)
-        w1 = a11 * v1 + a12 * v2  # M1 v
-        w2 = a12 * v1 + a22 * v2
-        lam = v1 * w1 + v2 * w2
-        f = np.where(s.real > 1.0, s, 1.0) / np.where(degenerate, 1.0, lam)
-        fw1 = f * w1
-        o11 = o11 + fw1 * w1
-        o12 = o12 + fw1 * w2
-        o22 = o22 + f * w2 * w2
+    s = (np.sqrt(np.where(whole, 1.0, disc)) - qb) * inv2qa  # s₊ (qa > 0)
+    # null vector of C = M2 - s M1 (symmetric, singular)
+    c11, c12, c22 = b11 - s * a11, b12 - s * a12, b22 - s * a22
+    use_first = np.abs(c11.real) >= np.abs(c22.real)
+    v1 = np.where(use_first, -c12, c22)
+    v2 = np.where(use_first, c11, -c12)
+    w1 = a11 * v1 + a12 * v2  # M1 v
+    w2 = a12 * v1 + a22 * v2
+    f = (s - 1.0) / np.where(whole, 1.0, v1 * w1 + v2 * w2)
+    fw1 = f * w1
+    o11, o12, o22 = a11 + fw1 * w1, a12 + fw1 * w2, a22 + f * w2 * w2
     if degenerate.any():
         s0 = -qb * inv2qa
         big = np.where(s0.real > 1.0, s0, 1.0)
         o11 = np.where(degenerate, big * a11, o11)
         o12 = np.where(degenerate, big * a12, o12)
         o22 = np.where(degenerate, big * a22, o22)
+    o11 = np.where(take_b, b11, np.where(take_a, a11, o11))
+    o12 = np.where(take_b, b12, np.where(take_a, a12, o12))
+    o22 = np.where(take_b, b22, np.where(take_a, a22, o22))
     return o11, o12, o22
 
 

@@ -31,7 +31,7 @@ from curvimesh.metric import (
     load_metric,
     load_metric_text,
 )
-from curvimesh.tensors import intersect_with_derivatives
+from curvimesh.tensors import intersect_components, intersect_with_derivatives, nested
 
 METRICS = Path(__file__).resolve().parent.parent / "metrics"
 EXAMPLES = ["toy", "three_toys", "concentric", "quartic", "front", "circular_layer"]
@@ -136,8 +136,12 @@ def spd_pairs(draw, smooth: bool = False) -> dict:
     }
 
 
-def reduction_is_degenerate(a: tuple, b: tuple) -> bool:
-    """Whether ``kernels.intersect`` takes max(1, s) M1 (its test, in the same operations)."""
+def reduction_is_whole(a: tuple, b: tuple) -> bool:
+    """Whether ``kernels.intersect`` returns M1 or M2 whole or max(1, s) M1 (its tests,
+    in the same operations): no null vector is computed."""
+    m2_over, m1_over = nested(*(tuple(np.array([v]) for v in m[:3]) for m in (a, b)))
+    if m2_over[0] or m1_over[0]:
+        return True
     qa = a[0] * a[2] - a[1] * a[1]
     qb = -(a[0] * b[2] + a[2] * b[0] - 2.0 * a[1] * b[1])
     qc = b[0] * b[2] - b[1] * b[1]
@@ -146,10 +150,10 @@ def reduction_is_degenerate(a: tuple, b: tuple) -> bool:
 
 def amplification(pair: dict) -> float:
     """κ(M1) (1 + 1/gap)², gap = |s1 − s2| / max(s1, s2) (1 in the degenerate case): how
-    much the rounding of the null vectors' derivatives grows. Both of these are the
-    derivative of one formula, rounded differently; the degenerate case, max(1, s) M1,
-    amplifies nothing."""
-    if reduction_is_degenerate(pair["a"], pair["b"]):
+    much the rounding of the null vector's derivatives grows. Both of these are the
+    derivative of one formula, rounded differently; nested metrics and the degenerate
+    case, max(1, s) M1, amplify nothing."""
+    if reduction_is_whole(pair["a"], pair["b"]):
         return 1.0
     s1, s2 = pair["s"]
     return pair["kappa"] * (1 + max(s1, s2) / abs(s1 - s2)) ** 2
@@ -187,6 +191,62 @@ def test_forward_mode_intersection_derivatives_are_the_complex_steps(pair):
     tol = 1e-12 * amplification(pair) * derivative_magnitude(old, a, b)
     assert np.abs(new[3:] - old[3:]).max() <= tol
     assert np.abs(new[3:] - ref[3:]).max() <= tol
+
+
+@st.composite
+def nested_pairs(draw) -> tuple[np.ndarray, np.ndarray, bool]:
+    """M1 SPD (anisotropy up to e^5) and M2 = M1 + P, P positive semidefinite (rank 1
+    or 2, of any size against M1), each with random derivatives (9-tuples), and
+    whether P has rank 2."""
+    r = rotation(draw(st.floats(0.0, math.pi)))
+    l1 = math.exp(draw(st.floats(-2.0, 8.0)))
+    m1 = r @ np.diag([l1, l1 * math.exp(draw(st.floats(-5.0, 5.0)))]) @ r.T
+    q = rotation(draw(st.floats(0.0, math.pi)))
+    scale = l1 * math.exp(draw(st.floats(-8.0, 4.0)))
+    ratio = draw(st.sampled_from([0.0, 0.3, 1.0]))
+    p = q @ np.diag([scale, scale * ratio]) @ q.T
+    m2 = m1 + p
+    d = np.array(draw(st.lists(st.floats(-1.0, 1.0), min_size=12, max_size=12)))
+    a = np.array([m1[0, 0], m1[0, 1], m1[1, 1], *(d[:6] * l1)])
+    b = np.array([m2[0, 0], m2[0, 1], m2[1, 1], *(d[6:] * l1)])
+    return a, b, ratio > 0.0
+
+
+@settings(max_examples=300, deadline=None)
+@given(nested_pairs())
+def test_nested_metrics_intersect_to_the_larger_bit_for_bit(pair):
+    # M2 = M1 + P contains M1: the intersection is M2 itself, its derivatives M2's;
+    # where P has rank 1, M2 − M1 is singular and rounding may call the pair
+    # crossing (s₋ = 1 within rounding): then M2 to rounding
+    a, b, rank2 = pair
+    m2_over, _ = nested(*(tuple(np.array([v]) for v in m[:3]) for m in (a, b)))
+    assert m2_over[0] or not rank2
+    for x, y in ((a, b), (b, a)):
+        got = kernels.intersect(*x[:3], *y[:3])
+        numpy = intersect_components(*(tuple(np.array([v]) for v in m[:3]) for m in (x, y)))
+        if m2_over[0]:
+            assert got == tuple(b[:3])
+            assert np.array_equal(kernels.intersect_d(tuple(x), tuple(y)), b)
+            assert [v[0] for v in numpy] == list(b[:3])
+        else:
+            assert np.abs(np.array(got) - b[:3]).max() <= 1e-12 * np.abs(b[:3]).max()
+
+
+@given(spd_pairs(smooth=True))
+@settings(max_examples=300, deadline=None)
+def test_intersection_is_the_eigen_reconstruction(pair):
+    # independent truth: M = P⁻ᵀ diag(max(1, s)) Λ P⁻¹ from numpy's eigenvectors of
+    # M1⁻¹ M2 (P's columns, Λ = Pᵀ M1 P), against the one-term closed form
+    a, b = pair["a"], pair["b"]
+    m1 = np.array([[a[0], a[1]], [a[1], a[2]]])
+    m2 = np.array([[b[0], b[1]], [b[1], b[2]]])
+    s, vec = np.linalg.eig(np.linalg.solve(m1, m2))
+    inv = np.linalg.inv(vec.real)
+    lam = np.diag(vec.real.T @ m1 @ vec.real)
+    ref = inv.T @ np.diag(np.maximum(s.real, 1.0) * lam) @ inv
+    got = np.array(kernels.intersect(*a[:3], *b[:3]))
+    tol = 1e-12 * amplification(pair) * np.abs(ref).max()
+    assert np.abs(got - [ref[0, 0], ref[0, 1], ref[1, 1]]).max() <= tol
 
 
 @settings(max_examples=300, deadline=None)
