@@ -860,10 +860,16 @@ def _closeness_rule(short: float, straight_order: int) -> tuple:
 
 
 def index_neighbours(index, mins: NDArray, maxs: NDArray, exclude: NDArray):
-    """Offsets ``(k + 1,)`` and ids of the points of ``index`` in each box ``[mins[i],
-    maxs[i]]`` but ``exclude[i]``, as :func:`any_closer` takes them."""
+    """Offsets ``(k + 1,)`` and ids of the points of ``index`` in the ellipse inscribed
+    in each box ``[mins[i], maxs[i]]`` (:func:`curvimesh.kernels.in_ellipse`) but
+    ``exclude[i]``, as :func:`any_closer` takes them."""
     q, hit = index.query(mins, maxs)
-    other = hit != exclude[q]
+    p = index.points[hit]
+    inside = np.empty(len(q), dtype=np.bool_)
+    kernels.in_ellipse(
+        *_rows(p[:, 0], p[:, 1], mins[q, 0], mins[q, 1], maxs[q, 0], maxs[q, 1]), inside
+    )
+    other = (hit != exclude[q]) & inside
     q, hit = q[other], hit[other]
     return np.searchsorted(q, np.arange(len(mins) + 1)), hit  # q is sorted
 

@@ -1415,15 +1415,35 @@ def rtree_fill(mins, maxs, boxes, first, count, leaf, ids, xy, roots, offsets, h
         seg[:n].sort()
 
 
+@njit(**_JIT)
+def _in_ellipse(px, py, x0, y0, x1, y1):
+    """Whether (px, py) lies in the ellipse inscribed in the box [x0, x1] × [y0, y1]
+    (boundary included): (dx/a)² + (dy/b)² ≤ 1 about the box's centre, a and b its
+    half-widths, as dx² b² + dy² a² ≤ a² b² (a flat box: its middle segment)."""
+    a = 0.5 * (x1 - x0)
+    b = 0.5 * (y1 - y0)
+    dx = px - 0.5 * (x0 + x1)
+    dy = py - 0.5 * (y0 + y1)
+    return dx * dx * b * b + dy * dy * a * a <= a * a * b * b
+
+
+@_row_kernel
+def in_ellipse(px, py, x0, y0, x1, y1, out):
+    """:func:`_in_ellipse` row by row (1D arrays), into ``out`` ``(k,)``."""
+    for i in prange(px.shape[0]):
+        out[i] = _in_ellipse(px[i], py[i], x0[i], y0[i], x1[i], y1[i])
+
+
 @_row_kernel(min_rows=SEARCH_PARALLEL_ROWS)
 def close_in_index(
     fn, cand, g_cand, mins, maxs, exclude, boxes, first, count, leaf, ids, xy, roots, pts,
     short, margin, probes, ts, ws, grid, t, w, tol, out,
 ):  # fmt: skip
     """:func:`close_candidates` with each candidate's neighbours found on the fly: the
-    indexed points (:func:`rtree_fill`'s arguments) in its box ``[mins[i], maxs[i]]``,
-    but the point ``exclude[i]`` (−1: none), in ascending id order as there. One pass
-    over the trees per candidate, and no table of pairs."""
+    indexed points (:func:`rtree_fill`'s arguments) in the ellipse inscribed in its box
+    ``[mins[i], maxs[i]]`` (:func:`in_ellipse`), but the point ``exclude[i]`` (−1: none),
+    in ascending id order as there. One pass over the trees per candidate, and no
+    table of pairs."""
     for i in prange(cand.shape[0]):
         x0, y0, x1, y1 = mins[i, 0], mins[i, 1], maxs[i, 0], maxs[i, 1]
         buf = np.empty(64, dtype=np.int64)
@@ -1435,8 +1455,9 @@ def close_in_index(
         nbr.sort()
         kept = 0
         for k in range(m):
-            if nbr[k] != exclude[i]:
-                nbr[kept] = nbr[k]
+            p = nbr[k]
+            if p != exclude[i] and _in_ellipse(pts[p, 0], pts[p, 1], x0, y0, x1, y1):
+                nbr[kept] = p
                 kept += 1
         out[i] = _nearest_close(
             fn, cand[i, 0], cand[i, 1], g_cand[i, 0], g_cand[i, 1], g_cand[i, 2], pts,

@@ -178,9 +178,12 @@ def close_to_index(
     exclude: NDArray | None = None,
 ) -> NDArray:
     """Whether each point ``x[i]`` ``(k, 2)`` is closer than ``min_dist`` (shortest
-    parabola, as :func:`too_close`) to a point of ``index`` in its search box of
-    half-widths ``radius`` ``(k, 2)``, ignoring the index point ``exclude[i]`` (``(k,)``,
-    −1 for none), ``(k,)``: nearest neighbours first (:func:`curvimesh.geodesic.any_closer`).
+    parabola, as :func:`too_close`) to a point of ``index`` within its search radii
+    ``radius`` ``(k, 2)`` (the ellipse, here the disc, of those half-axes: a point at
+    Euclidean distance D is at least D / H away in the metric, H the largest size on
+    the way, as :func:`search_halfwidths` assumes), ignoring the index point
+    ``exclude[i]`` (``(k,)``, −1 for none), ``(k,)``: nearest neighbours first
+    (:func:`curvimesh.geodesic.any_closer`).
     """
     if exclude is None:
         exclude = np.full(len(x), -1, dtype=np.int64)
