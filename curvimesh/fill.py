@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from curvimesh.freenode import bounded_lengths
 from curvimesh.metric import MetricField
-from curvimesh.sampling import SamplingOptions, accept_candidates
+from curvimesh.sampling import SamplingOptions, admissible_rows, conflict_free
 from curvimesh.spatial import PointIndex
 from curvimesh.triangulate import metric_delaunay_of
 
@@ -51,6 +51,20 @@ def metric_circumcentres(
     return centre, radius
 
 
+def _source_keys(ids: NDArray, n: int) -> NDArray:
+    """One int64 key per row of ids (i, j, k) over n points (k = −1 for a pair):
+    ((i (n + 1) + j) (n + 1) + k + 1), below 2⁶³ up to 2 million points."""
+    b = n + 1
+    return (ids[:, 0] * b + ids[:, 1]) * b + ids[:, 2] + 1
+
+
+def _renumbered(keys: NDArray, n: int, m: int) -> NDArray:
+    """:func:`_source_keys` over n points as they are over m ≥ n (the ids stay)."""
+    b = n + 1
+    ids = np.column_stack([keys // (b * b), keys // b % b, keys % b - 1])
+    return _source_keys(ids, m)
+
+
 def fill_gaps(
     field: MetricField,
     points: NDArray,
@@ -66,6 +80,7 @@ def fill_gaps(
     index = PointIndex()
     index.add(pts)
     done_keys = np.zeros(0, dtype=np.int64)  # edges already measured and found short
+    refused = np.zeros(0, dtype=np.int64)  # sources of candidates refused for good
     for _ in range(max_rounds):
         mesh = metric_delaunay_of(field, pts, field.box)
         e = mesh.edges
@@ -89,11 +104,24 @@ def fill_gaps(
         by_radius = np.argsort(-radius[big], kind="stable")
         by_length = np.argsort(-length[long], kind="stable")
         cand = np.concatenate([centre[big][by_radius], mid[long][by_length]])
-        new = accept_candidates(field, index, cand, gap_opt)
+        # each candidate's source, a triangle or an edge (sorted corner ids): one
+        # refused against the points is refused for good (the points only grow)
+        tri = np.sort(mesh.triangles[:, :3][big][by_radius], axis=1)
+        edge = np.column_stack([e[long][by_length], np.full(int(long.sum()), -1)])
+        source = np.concatenate([tri, edge])
+        keys = _source_keys(source, n)
+        fresh = ~np.isin(keys, refused)
+        cand, keys = cand[fresh], keys[fresh]
+        rows, reach = admissible_rows(field, index, cand, gap_opt)
+        out = np.ones(len(cand), dtype=bool)
+        out[rows] = False
+        refused = np.union1d(refused, keys[out])
+        new = cand[rows][conflict_free(field, cand[rows], reach, gap_opt)]
         if len(new) == 0:
             break
         index.add(new)
         pts = index.points
         # node ids stay the same as points are appended: keys stay valid only if n is fixed
         done_keys = (done_keys // n) * len(pts) + done_keys % n
+        refused = _renumbered(refused, n, len(pts))
     return np.array(pts)
