@@ -48,6 +48,11 @@ def christoffel(g: NDArray, dg: NDArray) -> NDArray:
 
 def _acceleration(field: MetricField, x: NDArray, v: NDArray) -> NDArray:
     """ẍ = −Γ(x)(ẋ, ẋ) ``(n, 2)``; rows where the metric is not defined give NaN."""
+    cm = field.kernel
+    if cm is not None:
+        out = np.empty((len(x), 2))
+        kernels.accelerations(cm.gd, *_rows(x, v), out)
+        return out
     g, dg = field.evaluate(x, derivatives=True, check=False)
     ok = np.isfinite(g).all(axis=(1, 2))
     gam = np.full((len(x), 2, 2, 2), np.nan)

@@ -940,6 +940,14 @@ def _acceleration(fn, x, y, vx, vy):
     return ax, ay
 
 
+@_row_kernel
+def accelerations(fn, x, v, out):
+    """:func:`_acceleration` row by row: ẍ = −Γ(x)(v, v) ``(n, 2)`` into ``out``
+    (``fn`` the metric with its derivatives; NaN where it is undefined)."""
+    for i in prange(x.shape[0]):
+        out[i, 0], out[i, 1] = _acceleration(fn, x[i, 0], x[i, 1], v[i, 0], v[i, 1])
+
+
 # Dormand & Prince (1980) RK5(4)7M, as geodesic._DP_*
 _C2, _C3, _C4, _C5 = 1 / 5, 3 / 10, 4 / 5, 8 / 9
 _A21 = 1 / 5

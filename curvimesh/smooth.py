@@ -3,15 +3,15 @@
 The paper places its points once and only swaps edges; its conclusion
 leaves "other mesh optimizations" to further work. This stage moves every
 interior vertex of the straight mesh towards the place where its edges would
-be unit: for an edge i–j of metric length L (the parabola bending as the
-geodesic does, the shortest parabola of paper eq. (3) to second order) the
-point p_j + (p_i − p_j) / L would make it unit if the metric were constant
-along it, and the vertex goes, by a relaxation factor, towards the average of
-these points over its edges (the "spring" relocation of Bossen & Heckbert
-1996, in the metric). All vertices move at once (a Jacobi sweep); a move is
-undone when it would invert a triangle, bring an edge below ``min_dist``, or
-make an edge longer than ``max_length`` and than it was. Between sweeps the
-edges are flipped back to the Delaunay triangulation in the metric. Boundary vertices stay.
+be unit: for an edge i–j of metric length L (its shortest parabola, paper
+eq. (3)) the point p_j + (p_i − p_j) / L would make it unit if the metric were
+constant along it, and the vertex goes, by a relaxation factor, towards the
+average of these points over its edges (the "spring" relocation of
+Bossen & Heckbert 1996, in the metric). All vertices move at once (a Jacobi
+sweep); a move is undone when it would invert a triangle, bring an edge
+below ``min_dist``, or make an edge longer than ``max_length`` and than it
+was. Between sweeps the edges are flipped back to the Delaunay triangulation
+in the metric. Boundary vertices stay.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from curvimesh.freenode import shortest_parabola
 from curvimesh.geodesic import geodesic_alpha, parabola_length_rule, parabola_midnode
 from curvimesh.mesh import Mesh, signed_areas
 from curvimesh.metric import MetricField
@@ -37,20 +38,56 @@ def _on_box(points: NDArray, box: tuple[float, float, float, float]) -> NDArray:
     )
 
 
-def edge_parabola_lengths(field: MetricField, points: NDArray, edges: NDArray) -> NDArray:
-    """Lengths ``(E,)`` of the parabolas of edges ``(E, 2)`` that bend as the geodesic
-    does at each chord's middle (:func:`curvimesh.geodesic.geodesic_alpha`; α = 0 where
-    that is undefined), by the search's rule (composite Gauss, 2 × 5 points).
+def edge_parabola_lengths(
+    field: MetricField, points: NDArray, edges: NDArray, start: NDArray | None = None
+) -> tuple[NDArray, NDArray]:
+    """Lengths ``(E,)`` of the shortest parabolas of edges ``(E, 2)`` (search accuracy)
+    and their α ``(E,)``, searched from the guesses ``start`` ``(E,)`` of α if given,
+    else from the geodesic's bend at each chord's middle (:func:`geodesic_alpha`)."""
+    if start is None:
+        start = geodesic_alpha(field, points[edges[:, 0]], points[edges[:, 1]])
+    par = shortest_parabola(
+        field,
+        points[edges[:, 0]],
+        points[edges[:, 1]],
+        scan=5,
+        alpha_tol=2e-3,
+        exact_length=False,
+        remember=False,  # the vertices move at every sweep
+        start=start,
+    )
+    return par.length, par.alpha
 
-    Not searched: the guess is within 7e-6 of the shortest parabola's α at the
-    median edge (1.4e-3 at the 99th percentile, three toys), and the length is
-    stationary in α there, so it is the shortest parabola's (paper eq. (3)) to
-    second order in that gap, and never shorter. The springs need no more, and
-    the edges are searched when they are curved."""
+
+def tracked_lengths(
+    field: MetricField, points: NDArray, edges: NDArray, alpha: NDArray
+) -> tuple[NDArray, NDArray]:
+    """Lengths ``(E,)`` of edges ``(E, 2)`` whose ends moved a little since their shortest
+    parabola's α ``alpha`` ``(E,)`` was found, and the α kept ``(E,)``: the shorter of
+    the parabolas at that α and at the geodesic's bend at the chord's middle
+    (:func:`geodesic_alpha`), by the search's rule (composite Gauss, 2 × 5 points).
+
+    Not searched: each is an upper bound of the shortest parabola's length, and
+    the length is stationary in α at its optimum, so a guess δ off is off by
+    O(δ²). The bend alone is within 1e-3 of the optimum α at the 99th percentile
+    of the three toys' edges, but can be far off where the geodesic bends hard
+    (α 0.63 for 0.20, a length 1.46 times too long, on 1 edge in 10⁵); the α
+    of the last sweep, at ends moved by a few hundredths, is not.
+    """
     a, b = points[edges[:, 0]], points[edges[:, 1]]
-    alpha = geodesic_alpha(field, a, b)
-    alpha[~np.isfinite(alpha)] = 0.0
-    return parabola_length_rule(field, a, b, parabola_midnode(a, b, alpha))
+    bend = geodesic_alpha(field, a, b)
+    bend[~np.isfinite(bend)] = 0.0
+    k = len(edges)
+    both = parabola_length_rule(
+        field,
+        np.concatenate([a, a]),
+        np.concatenate([b, b]),
+        parabola_midnode(
+            np.concatenate([a, a]), np.concatenate([b, b]), np.concatenate([alpha, bend])
+        ),
+    )
+    use_bend = both[k:] < both[:k]
+    return np.where(use_bend, both[k:], both[:k]), np.where(use_bend, bend, alpha)
 
 
 def carried(old_edges: NDArray, values: NDArray, edges: NDArray, n: int) -> NDArray:
@@ -72,16 +109,18 @@ def _undo_bad_moves(
     tris: NDArray,
     min_dist: float,
     old_length: NDArray,
+    old_alpha: NDArray,
     max_length: float = 1.4,
-) -> tuple[NDArray, NDArray]:
+) -> tuple[NDArray, NDArray, NDArray]:
     """The positions ``new`` ``(n, 2)`` with the bad moves of vertices ``moved`` undone,
-    and the lengths ``(E,)`` of ``edges`` there.
+    and the lengths and α ``(E,)`` of ``edges`` there.
 
-    ``old_length`` are the edges' lengths at ``old`` (:func:`edge_parabola_lengths`).
-    An edge touching a moved vertex is measured again at its new ends; a moved
+    ``old_length`` and ``old_alpha`` are the edges' lengths and α at ``old``
+    (:func:`edge_parabola_lengths`). An edge touching a moved vertex is measured
+    again at its new ends, from its old α (:func:`tracked_lengths`); a moved
     vertex goes back to ``old`` when it is a corner of a triangle of ``tris``
-    that is inverted (signed area ≤ 0) or an end of such an edge that came out shorter than
-    ``min_dist`` or longer than both ``max_length`` and its old length (a move
+    that is inverted (signed area ≤ 0) or an end of such an edge that came out
+    shorter than ``min_dist`` or longer than both ``max_length`` and its old length (a move
     never makes a long edge, or a long edge longer). This repeats until no
     move is undone (each pass undoes at least one, so it ends). Each pass
     re-measures only the triangles and edges at the vertices just undone: an
@@ -91,24 +130,24 @@ def _undo_bad_moves(
     """
     n = len(new)
     new = new.copy()
-    length = old_length.copy()
+    length, alpha = old_length.copy(), old_alpha.copy()
     bad_e = np.zeros(len(edges), dtype=bool)
     if moved.size == 0:
-        return new, length
+        return new, length, alpha
     is_moved = np.zeros(n, dtype=bool)
     is_moved[moved] = True
     longest = np.maximum(max_length, old_length)
 
     def measure(rows: NDArray) -> None:
-        # rows with a moved end are measured at their new ends, the others are back
+        # rows with a moved end are searched at their new ends, the others are back
         now = is_moved[edges[rows]].any(axis=1)
         back = rows[~now]
-        length[back], bad_e[back] = old_length[back], False
+        length[back], alpha[back], bad_e[back] = old_length[back], old_alpha[back], False
         rows = rows[now]
         if rows.size == 0:
             return
-        ln = edge_parabola_lengths(field, new, edges[rows])
-        length[rows] = ln
+        ln, al = tracked_lengths(field, new, edges[rows], old_alpha[rows])
+        length[rows], alpha[rows] = ln, al
         bad_e[rows] = (ln < min_dist) | (ln > longest[rows])
 
     bad_t = signed_areas(new, tris) <= 0
@@ -128,7 +167,7 @@ def _undo_bad_moves(
         at = np.flatnonzero(undone[tris].any(axis=1))
         bad_t[at] = signed_areas(new, tris[at]) <= 0
         measure(np.flatnonzero(undone[edges].any(axis=1)))
-    return new, length
+    return new, length, alpha
 
 
 def relocate(
@@ -147,7 +186,7 @@ def relocate(
     n = len(pts)
     cur = mesh
     e = cur.edges
-    length = edge_parabola_lengths(field, pts, e)
+    length, alpha = edge_parabola_lengths(field, pts, e)
     for sweep in range(sweeps):
         i = np.concatenate([e[:, 0], e[:, 1]])
         j = np.concatenate([e[:, 1], e[:, 0]])
@@ -166,17 +205,18 @@ def relocate(
         move = np.where(fixed[:, None] | (count[:, None] == 0), 0.0, relax * (avg - pts))
         new = pts + move
         moved = np.flatnonzero(np.abs(move).max(axis=1) > 0)
-        pts, length = _undo_bad_moves(
-            field, pts, new, moved, e, cur.corners, min_dist, length, max_length
+        pts, length, alpha = _undo_bad_moves(
+            field, pts, new, moved, e, cur.corners, min_dist, length, alpha, max_length
         )
         cur = metric_delaunay(field, Mesh(pts, cur.corners, mesh.box))
         if sweep + 1 == sweeps:
             break
-        # the edges a flip made are measured; the others keep their lengths at
-        # these positions (measured by the undo pass)
+        # the edges a flip made are searched from scratch; the others keep their
+        # lengths at these positions (measured by the undo pass)
         old_edges, e = e, cur.edges
         length = carried(old_edges, length, e, n)
-        fresh = np.flatnonzero(np.isnan(length))
+        alpha = carried(old_edges, alpha, e, n)
+        fresh = np.flatnonzero(np.isnan(alpha))
         if fresh.size:
-            length[fresh] = edge_parabola_lengths(field, pts, e[fresh])
+            length[fresh], alpha[fresh] = edge_parabola_lengths(field, pts, e[fresh])
     return cur

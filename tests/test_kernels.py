@@ -287,6 +287,22 @@ metric:
 
 
 @pytest.mark.parametrize("name", ["toy", "three_toys", "front"])
+def test_compiled_christoffel_accelerations_match_numpy(name):
+    # ẍ = −Γ(x)(v, v) and the geodesic's bend at chord middles (geodesic_alpha)
+    fast, ref = both(load_metric(METRICS / f"{name}.yaml"))
+    x = box_points(fast, 2000, 21)
+    v = np.random.default_rng(22).normal(size=(len(x), 2))
+    acc, acc0 = geo._acceleration(fast, x, v), geo._acceleration(ref, x, v)
+    assert np.isfinite(acc0).all()
+    # relative 1e-9, or 1e-12 of the largest where the metric is flat (ẍ ~ 1e-15)
+    scale = np.maximum(np.abs(acc0).max(axis=1, keepdims=True), 1e-3 * np.abs(acc0).max())
+    assert np.all(np.abs(acc - acc0) <= 1e-9 * scale)
+    b = x + 0.05 * v
+    a1, a0 = geo.geodesic_alpha(fast, x, b), geo.geodesic_alpha(ref, x, b)
+    assert np.all(np.abs(a1 - a0) <= 1e-9 * np.maximum(np.abs(a0), 1e-3))
+
+
+@pytest.mark.parametrize("name", ["toy", "three_toys", "front"])
 def test_geodesic_kernels_match_numpy(name):
     fast, ref = both(load_metric(METRICS / f"{name}.yaml"))
     a = box_points(fast, 1500, 11)

@@ -281,7 +281,7 @@ def test_relocation_undo_matches_full_remeasuring():
     re-measuring every edge at a moved vertex on every pass; the lengths it returns
     are those of the edges at the final positions."""
     from curvimesh.mesh import signed_areas
-    from curvimesh.smooth import _on_box, _undo_bad_moves, edge_parabola_lengths
+    from curvimesh.smooth import _on_box, _undo_bad_moves, edge_parabola_lengths, tracked_lengths
     from curvimesh.triangulate import delaunay, metric_delaunay
 
     fld = load_metric_text(CONSTANT)
@@ -292,10 +292,12 @@ def test_relocation_undo_matches_full_remeasuring():
     new = pts.copy()
     # random moves: some invert triangles or shorten edges, undoing takes several passes
     new[moved] += np.random.default_rng(5).normal(scale=0.03, size=(len(moved), 2))
-    before = edge_parabola_lengths(fld, pts, e)
+    before, alpha = edge_parabola_lengths(fld, pts, e)
     # the random moves make many edges longer than 1.5: the long-edge rule undoes moves too
     max_length = 1.5
-    got, got_length = _undo_bad_moves(fld, pts, new, moved, e, tris, 0.7, before, max_length)
+    got, got_length, _ = _undo_bad_moves(
+        fld, pts, new, moved, e, tris, 0.7, before, alpha, max_length
+    )
     # the plain loop: everything re-measured on every pass
     ref = new.copy()
     long_undone = False
@@ -304,7 +306,7 @@ def test_relocation_undo_matches_full_remeasuring():
         touch = np.isin(e, moved).any(axis=1)
         short = np.zeros(len(e), dtype=bool)
         if touch.any():
-            length = edge_parabola_lengths(fld, ref, e[touch])
+            length, _ = tracked_lengths(fld, ref, e[touch], alpha[touch])
             long = length > np.maximum(max_length, before[touch])
             long_undone |= bool(long.any())
             short[touch] = (length < 0.7) | long
