@@ -112,11 +112,11 @@ def fill_gaps(
         keys = _source_keys(source, n)
         fresh = ~np.isin(keys, refused)
         cand, keys = cand[fresh], keys[fresh]
-        rows, reach = admissible_rows(field, index, cand, gap_opt)
+        rows, regions = admissible_rows(field, index, cand, gap_opt)
         out = np.ones(len(cand), dtype=bool)
         out[rows] = False
         refused = np.union1d(refused, keys[out])
-        new = cand[rows][conflict_free(field, cand[rows], reach, gap_opt)]
+        new = cand[rows][conflict_free(field, cand[rows], regions, gap_opt)]
         if len(new) == 0:
             break
         index.add(new)

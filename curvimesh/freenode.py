@@ -318,14 +318,15 @@ def any_closer_in_index(
     short: float,
     *,
     straight_order: int = 5,
+    quad: NDArray | None = None,
 ) -> NDArray[np.bool_]:
     """:func:`curvimesh.geodesic.any_closer_in_index` (same arguments); where the frame
     may turn fast, the pairs are listed and decided by :func:`any_closer`."""
     if not may_turn_fast(field):
         return geodesic.any_closer_in_index(
-            field, a, mins, maxs, index, exclude, short, straight_order=straight_order
+            field, a, mins, maxs, index, exclude, short, straight_order=straight_order, quad=quad
         )
-    offsets, hit = geodesic.index_neighbours(index, mins, maxs, exclude)
+    offsets, hit = geodesic.index_neighbours(index, mins, maxs, exclude, quad)
     return any_closer(field, a, index.points, offsets, hit, short, straight_order=straight_order)
 
 

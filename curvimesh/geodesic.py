@@ -864,16 +864,28 @@ def _closeness_rule(short: float, straight_order: int) -> tuple:
     return float(short), LOWER_BOUND_MARGIN, _PROBES, ts, ws, grid, t, w, BOUNDED_TOL
 
 
-def index_neighbours(index, mins: NDArray, maxs: NDArray, exclude: NDArray):
-    """Offsets ``(k + 1,)`` and ids of the points of ``index`` in the ellipse inscribed
-    in each box ``[mins[i], maxs[i]]`` (:func:`curvimesh.kernels.in_ellipse`) but
+def inscribed_quads(mins: NDArray, maxs: NDArray) -> NDArray:
+    """(Q11, Q12, Q22) ``(k, 3)`` of the ellipses inscribed in the boxes [mins, maxs]
+    (half-axes the half-widths; a flat box gives an infinite Q: its centre alone)."""
+    half = 0.5 * (np.asarray(maxs, dtype=float) - np.asarray(mins, dtype=float))
+    with np.errstate(divide="ignore"):
+        inv = 1.0 / (half * half)
+    return np.column_stack([inv[:, 0], np.zeros(len(half)), inv[:, 1]])
+
+
+def index_neighbours(
+    index, mins: NDArray, maxs: NDArray, exclude: NDArray, quad: NDArray | None = None
+):
+    """Offsets ``(k + 1,)`` and ids of the points of ``index`` in each box ``[mins[i],
+    maxs[i]]`` and the ellipse ``quad[i]`` about its centre (:func:`curvimesh.kernels.
+    in_region`; by default the one inscribed in the box, :func:`inscribed_quads`) but
     ``exclude[i]``, as :func:`any_closer` takes them."""
+    if quad is None:
+        quad = inscribed_quads(mins, maxs)
     q, hit = index.query(mins, maxs)
-    p = index.points[hit]
+    centre = 0.5 * (np.asarray(mins) + np.asarray(maxs))
     inside = np.empty(len(q), dtype=np.bool_)
-    kernels.in_ellipse(
-        *_rows(p[:, 0], p[:, 1], mins[q, 0], mins[q, 1], maxs[q, 0], maxs[q, 1]), inside
-    )
+    kernels.in_region(*_rows(index.points[hit], centre[q], quad[q]), inside)
     other = (hit != exclude[q]) & inside
     q, hit = q[other], hit[other]
     return np.searchsorted(q, np.arange(len(mins) + 1)), hit  # q is sorted
@@ -889,24 +901,28 @@ def any_closer_in_index(
     short: float,
     *,
     straight_order: int = 5,
+    quad: NDArray | None = None,
 ) -> NDArray[np.bool_]:
     """:func:`any_closer` of each point ``a[i]`` ``(k, 2)`` against the points of ``index``
-    (a :class:`curvimesh.spatial.PointIndex`) in its box ``[mins[i], maxs[i]]``, but
-    the point ``exclude[i]`` (−1: none), ``(k,)``.
+    (a :class:`curvimesh.spatial.PointIndex`) in its box ``[mins[i], maxs[i]]`` and its
+    ellipse ``quad[i]`` (about a[i], the box's centre; by default the one inscribed in
+    the box), but the point ``exclude[i]`` (−1: none), ``(k,)``.
 
     Where the field is compiled, the box queries and the verdicts are one pass
     (:func:`curvimesh.kernels.close_in_index`): no table of pairs is built.
     """
+    if quad is None:
+        quad = inscribed_quads(mins, maxs)
     cm = field.kernel
     if cm is None or index.packed() is None or len(a) == 0:
-        offsets, hit = index_neighbours(index, mins, maxs, exclude)
+        offsets, hit = index_neighbours(index, mins, maxs, exclude, quad)
         return any_closer(
             field, a, index.points, offsets, hit, short, straight_order=straight_order
         )
-    a, mins, maxs = _rows(a, mins, maxs)
+    a, mins, maxs, quad = _rows(a, mins, maxs, quad)
     out = np.zeros(len(a), dtype=np.bool_)
     kernels.close_in_index(
-        cm.g, a, _metric_rows(field, a), mins, maxs,
+        cm.g, a, _metric_rows(field, a), mins, maxs, quad,
         np.ascontiguousarray(exclude, dtype=np.int64), *index.packed(), *_rows(index.points),
         *_closeness_rule(short, straight_order), out,
     )  # fmt: skip

@@ -60,7 +60,7 @@ from curvimesh.geodesic import parabola_points
 from curvimesh.mesh import Mesh, local_edge, rotate_triangles
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths, edge_lengths_fast, metric_areas, quality_from
-from curvimesh.sampling import close_to_index, search_halfwidths, too_close
+from curvimesh.sampling import close_to_index, search_halfwidths, search_regions, too_close
 from curvimesh.spatial import PointIndex, pairs_within_boxes
 
 #: Fractions of the optimal offset tried for the spokes' nodes, in order.
@@ -187,7 +187,7 @@ def _far_from_vertices(field: MetricField, mesh: Mesh, x: NDArray, min_dist: flo
     corners = mesh.vertex_ids
     index = PointIndex()
     index.add(pts[corners])
-    return ~close_to_index(field, index, x, search_halfwidths(field, x, 2.0 * min_dist), min_dist)
+    return ~close_to_index(field, index, x, search_regions(field, x, 2.0 * min_dist), min_dist)
 
 
 def _insert_round(

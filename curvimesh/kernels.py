@@ -1424,34 +1424,30 @@ def rtree_fill(mins, maxs, boxes, first, count, leaf, ids, xy, roots, offsets, h
 
 
 @njit(**_JIT)
-def _in_ellipse(px, py, x0, y0, x1, y1):
-    """Whether (px, py) lies in the ellipse inscribed in the box [x0, x1] × [y0, y1]
-    (boundary included): (dx/a)² + (dy/b)² ≤ 1 about the box's centre, a and b its
-    half-widths, as dx² b² + dy² a² ≤ a² b² (a flat box: its middle segment)."""
-    a = 0.5 * (x1 - x0)
-    b = 0.5 * (y1 - y0)
-    dx = px - 0.5 * (x0 + x1)
-    dy = py - 0.5 * (y0 + y1)
-    return dx * dx * b * b + dy * dy * a * a <= a * a * b * b
+def _in_region(px, py, cx, cy, q11, q12, q22):
+    """Whether (px, py) lies in the ellipse (x − c)ᵀ Q (x − c) ≤ 1 (boundary included)."""
+    dx = px - cx
+    dy = py - cy
+    return q11 * dx * dx + 2.0 * q12 * dx * dy + q22 * dy * dy <= 1.0
 
 
 @_row_kernel
-def in_ellipse(px, py, x0, y0, x1, y1, out):
-    """:func:`_in_ellipse` row by row (1D arrays), into ``out`` ``(k,)``."""
-    for i in prange(px.shape[0]):
-        out[i] = _in_ellipse(px[i], py[i], x0[i], y0[i], x1[i], y1[i])
+def in_region(p, c, quad, out):
+    """:func:`_in_region` row by row: ``p[i]`` in the ellipse ``quad[i]`` about ``c[i]``."""
+    for i in prange(p.shape[0]):
+        out[i] = _in_region(p[i, 0], p[i, 1], c[i, 0], c[i, 1], quad[i, 0], quad[i, 1], quad[i, 2])
 
 
 @_row_kernel(min_rows=SEARCH_PARALLEL_ROWS)
 def close_in_index(
-    fn, cand, g_cand, mins, maxs, exclude, boxes, first, count, leaf, ids, xy, roots, pts,
-    short, margin, probes, ts, ws, grid, t, w, tol, out,
+    fn, cand, g_cand, mins, maxs, quad, exclude, boxes, first, count, leaf, ids, xy, roots,
+    pts, short, margin, probes, ts, ws, grid, t, w, tol, out,
 ):  # fmt: skip
     """:func:`close_candidates` with each candidate's neighbours found on the fly: the
-    indexed points (:func:`rtree_fill`'s arguments) in the ellipse inscribed in its box
-    ``[mins[i], maxs[i]]`` (:func:`in_ellipse`), but the point ``exclude[i]`` (−1: none),
-    in ascending id order as there. One pass over the trees per candidate, and no
-    table of pairs."""
+    indexed points (:func:`rtree_fill`'s arguments) in its box ``[mins[i], maxs[i]]``
+    and its ellipse ``quad[i]`` about it (:func:`in_region`), but the point
+    ``exclude[i]`` (−1: none), in ascending id order as there. One pass over the
+    trees per candidate, and no table of pairs."""
     for i in prange(cand.shape[0]):
         x0, y0, x1, y1 = mins[i, 0], mins[i, 1], maxs[i, 0], maxs[i, 1]
         buf = np.empty(64, dtype=np.int64)
@@ -1464,7 +1460,9 @@ def close_in_index(
         kept = 0
         for k in range(m):
             p = nbr[k]
-            if p != exclude[i] and _in_ellipse(pts[p, 0], pts[p, 1], x0, y0, x1, y1):
+            if p != exclude[i] and _in_region(
+                pts[p, 0], pts[p, 1], cand[i, 0], cand[i, 1], quad[i, 0], quad[i, 1], quad[i, 2]
+            ):
                 nbr[kept] = p
                 kept += 1
         out[i] = _nearest_close(

@@ -48,6 +48,7 @@ from curvimesh.geodesic import (
 )
 from curvimesh.metric import MetricField, smallest_eigenvalue
 from curvimesh.spatial import PointIndex, pairs_within_boxes
+from curvimesh.tensors import intersect_components
 
 
 @dataclass(frozen=True)
@@ -122,48 +123,103 @@ def backward(g: NDArray, dirs: NDArray, arrival: NDArray) -> NDArray:
     return np.nan_to_num(cos, nan=-1.0) >= BACK_COS
 
 
-#: Where :func:`search_halfwidths` samples the largest size besides the centre: the
-#: corners and the side midpoints of the box of the local largest size (in half-widths).
+#: Where :func:`search_regions` samples the metric besides the centre: the corners and
+#: the side midpoints of the box of the local largest size (in half-widths).
 _BOX_SAMPLES = np.array(
     [[1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [1, -1], [-1, 1], [-1, -1]], dtype=float
 )
 
-#: Allowance of :func:`search_halfwidths` for the sizes' growth beyond the largest
-#: size sampled: the box is 0.7 × radius × that size wide on each side.
+#: Allowance of :func:`search_regions` for the sizes' growth beyond those sampled: the
+#: region reaches 0.7 × radius times the sampled sizes in each direction.
 SAMPLED_GROWTH = 0.7
 
 
-def search_halfwidths(field: MetricField, pts: NDArray, radius: float) -> NDArray:
-    """Half-widths ``(n, 2)`` of a search box holding the points within metric distance
-    radius / 2 of each point, with room for the sizes to grow.
+@dataclass(frozen=True)
+class SearchRegions:
+    """Where each point's close neighbours may lie: the ellipses (x − c)ᵀ Q (x − c) ≤ 1
+    about the points c, ``quad`` ``(n, 3)`` = (Q11, Q12, Q22), inside the boxes of
+    half-widths ``halfwidth`` ``(n, 2)``."""
 
-    A point at metric distance D lies within Euclidean distance D × H, H the
-    largest size 1/sqrt(λ_min(g)) along the shortest path. H is sampled at the
-    centre, corners and side midpoints of the box of half-width radius × h (h the
-    local largest size: the box allows the sizes to double), clipped to the
-    domain, and the box is SAMPLED_GROWTH × radius × H on each side (for
-    radius = 2 × min_dist: a growth of 1.4 beyond the largest size sampled).
-    Where the sizes are uniform the box is 0.7 times as wide as the
-    doubling box, and holds about half the points; where they grow faster it
-    is wider. The box is square, the bounding box of the ball of the largest
-    size, since the metric turns between two points (a tighter box, the
-    bounding box of the local metric ball, misses neighbours across curved
-    anisotropic layers).
+    halfwidth: NDArray
+    quad: NDArray
+
+    def __getitem__(self, rows) -> SearchRegions:
+        return SearchRegions(self.halfwidth[rows], self.quad[rows])
+
+
+def search_halfwidths(field: MetricField, pts: NDArray, radius: float) -> NDArray:
+    """Half-widths ``(n, 2)`` of the boxes of :func:`search_regions`."""
+    return search_regions(field, pts, radius).halfwidth
+
+
+def _size_tensors(g: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """g⁻¹ of tensors ``(..., 2, 2)`` as components (s11, s12, s22): the squared sizes."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        det = g[..., 0, 0] * g[..., 1, 1] - g[..., 0, 1] ** 2
+        return g[..., 1, 1] / det, -g[..., 0, 1] / det, g[..., 0, 0] / det
+
+
+def search_regions(field: MetricField, pts: NDArray, radius: float) -> SearchRegions:
+    """Regions holding the points within metric distance radius / 2 of each point, with
+    room for the sizes to grow (:class:`SearchRegions`).
+
+    A curve of metric length D from c stays, where the metric's size tensor g⁻¹ is
+    at most γ² U (every size at most γ times U's in its direction), within
+    (x − c)ᵀ U⁻¹ (x − c) ≤ (γ D)². U is the union of the size tensors sampled at
+    the centre, corners and side midpoints of the box of half-width radius × h (h
+    the local largest size), clipped to the domain: their intersection as sizes
+    (:func:`curvimesh.tensors.intersect_components`), the smallest tensor of the
+    simultaneous reduction above each (Frey & George, §10.6, on g⁻¹). With
+    γ D = SAMPLED_GROWTH × radius (for radius = 2 × min_dist and D = min_dist: a
+    growth of 1.4 beyond the sizes sampled) that ellipse is the region, inside
+    the square box of the largest size sampled (the bound of the isotropic
+    argument, a point at distance D lying within D × H, H the largest size on
+    the way). Where the metric is anisotropic and turns slowly the ellipse
+    holds a fraction of the square's points (three toys at 3.9·10⁴ vertices:
+    27,009 against 75,166); where it turns within the box the union widens it
+    (across curved anisotropic layers the local metric ball alone misses
+    neighbours).
     """
     pts = np.asarray(pts, dtype=float).reshape(-1, 2)
+    n = len(pts)
+    g0 = field.tensor(pts, check=False)
     with np.errstate(invalid="ignore", divide="ignore"):
-        h = 1.0 / np.sqrt(smallest_eigenvalue(field.tensor(pts, check=False)))
+        h = 1.0 / np.sqrt(smallest_eigenvalue(g0))
     h[~np.isfinite(h)] = 0.0
     xmin, ymin, xmax, ymax = field.box
     probe = pts[:, None, :] + _BOX_SAMPLES[None] * (radius * h)[:, None, None]
     probe[..., 0] = np.clip(probe[..., 0], xmin, xmax)
     probe[..., 1] = np.clip(probe[..., 1], ymin, ymax)
-    lam = smallest_eigenvalue(field.tensor(probe.reshape(-1, 2), check=False))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        size = 1.0 / np.sqrt(lam.reshape(len(pts), len(_BOX_SAMPLES)))
-    size[~np.isfinite(size)] = 0.0
-    hw = SAMPLED_GROWTH * radius * np.maximum(size.max(axis=1), h)
-    return np.column_stack([hw, hw])
+    g = np.concatenate(
+        [g0[:, None], field.tensor(probe.reshape(-1, 2), check=False).reshape(n, -1, 2, 2)],
+        axis=1,
+    )  # (n, 9, 2, 2): the centre, then the box samples
+    s11, s12, s22 = _size_tensors(g)
+    ok = np.isfinite(s11) & np.isfinite(s12) & np.isfinite(s22) & (s11 > 0)
+    ok &= s11 * s22 - s12 * s12 > 0
+    largest = np.where(ok, 0.5 * (s11 + s22) + np.hypot(0.5 * (s11 - s22), s12), 0.0)
+    reach = SAMPLED_GROWTH * radius
+    hw = reach * np.sqrt(np.maximum(largest.max(axis=1), h * h))
+    # the union of the defined samples (an undefined one repeats the first defined)
+    first = np.argmax(ok, axis=1)
+    rows = np.arange(n)
+    u = [c[rows, first] for c in (s11, s12, s22)]
+    with np.errstate(all="ignore"):
+        for k in range(1, g.shape[1]):
+            union = intersect_components(tuple(u), (s11[:, k], s12[:, k], s22[:, k]))
+            u = [np.where(ok[:, k], a, b) for a, b in zip(union, u, strict=True)]
+        u11, u12, u22 = u
+        det = u11 * u22 - u12 * u12
+        quad = np.column_stack([u22, -u12, u11]) / (det * reach * reach)[:, None]
+        box = np.minimum(reach * np.sqrt(np.column_stack([u11, u22])), hw[:, None])
+    # no defined sample: the square of the local size (h = 0: the point alone)
+    bad = ~(np.isfinite(quad).all(axis=1) & np.isfinite(box).all(axis=1) & (det > 0))
+    if bad.any():
+        with np.errstate(divide="ignore"):
+            iso = 1.0 / (hw[bad] * hw[bad])
+        quad[bad] = np.column_stack([iso, np.zeros(int(bad.sum())), iso])
+        box[bad] = hw[bad, None]
+    return SearchRegions(box, quad)
 
 
 def too_close(field: MetricField, a: NDArray, b: NDArray, min_dist: float) -> NDArray:
@@ -208,23 +264,21 @@ def close_to_index(
     field: MetricField,
     index: PointIndex,
     x: NDArray,
-    radius: NDArray,
+    regions: SearchRegions,
     min_dist: float,
     *,
     exclude: NDArray | None = None,
 ) -> NDArray:
     """Whether each point ``x[i]`` ``(k, 2)`` is closer than ``min_dist`` (shortest
-    parabola, as :func:`too_close`) to a point of ``index`` within its search radii
-    ``radius`` ``(k, 2)`` (the ellipse, here the disc, of those half-axes: a point at
-    Euclidean distance D is at least D / H away in the metric, H the largest size on
-    the way, as :func:`search_halfwidths` assumes), ignoring the index point
-    ``exclude[i]`` (``(k,)``, −1 for none), ``(k,)``: nearest neighbours first
-    (:func:`curvimesh.geodesic.any_closer`).
+    parabola, as :func:`too_close`) to a point of ``index`` in its search region
+    (:func:`search_regions`), ignoring the index point ``exclude[i]`` (``(k,)``, −1 for
+    none), ``(k,)``: nearest neighbours first (:func:`curvimesh.geodesic.any_closer`).
     """
     if exclude is None:
         exclude = np.full(len(x), -1, dtype=np.int64)
+    hw = regions.halfwidth
     return any_closer_in_index(
-        field, x, x - radius, x + radius, index, exclude, min_dist, straight_order=4
+        field, x, x - hw, x + hw, index, exclude, min_dist, straight_order=4, quad=regions.quad
     )
 
 
@@ -324,43 +378,44 @@ def accepted_rows(
 ) -> NDArray:
     """The rows ``(k,)`` of the candidates ``cand`` ``(m, 2)`` that
     :func:`accept_candidates` keeps, ascending."""
-    rows, radius = admissible_rows(field, index, cand, opt)
-    return rows[conflict_free(field, cand[rows], radius, opt)]
+    rows, regions = admissible_rows(field, index, cand, opt)
+    return rows[conflict_free(field, cand[rows], regions, opt)]
 
 
 def admissible_rows(
     field: MetricField, index: PointIndex, cand: NDArray, opt: SamplingOptions
-) -> tuple[NDArray, NDArray]:
+) -> tuple[NDArray, SearchRegions]:
     """The rows ``(k,)`` of the candidates ``cand`` ``(m, 2)`` inside the box, at least
     ``boundary_dist`` from its sides and ``min_dist`` from the points of ``index``,
-    ascending, and their search half-widths ``(k, 2)``. A candidate refused here
+    ascending, and their search regions (:func:`search_regions`). A candidate refused here
     stays refused as points are added to the index."""
     xmin, ymin, xmax, ymax = field.box
     rows = np.flatnonzero(
         (cand[:, 0] > xmin) & (cand[:, 0] < xmax) & (cand[:, 1] > ymin) & (cand[:, 1] < ymax)
     )
     if len(rows) == 0:
-        return rows, np.zeros((0, 2))
+        return rows, SearchRegions(np.zeros((0, 2)), np.zeros((0, 3)))
     cand = cand[rows]
-    radius = search_halfwidths(field, cand, opt.search * opt.min_dist)
-    # the box allows the sizes to grow by g = half-width / (min_dist × sampled size): a
-    # side farther than boundary_dist × g × size = half-width × boundary_dist / min_dist
-    # is at least boundary_dist away (as a point outside the box is min_dist away)
-    reach = radius[:, 0] * (opt.boundary_dist / opt.min_dist)
+    regions = search_regions(field, cand, opt.search * opt.min_dist)
+    # the region allows the sizes to grow by g = half-width / (min_dist × sampled size):
+    # a side farther than boundary_dist × g × size = half-width × boundary_dist /
+    # min_dist is at least boundary_dist away (as a point outside it is min_dist away)
+    reach = regions.halfwidth.max(axis=1) * (opt.boundary_dist / opt.min_dist)
     near = _boundary_distance(field, cand, reach) >= opt.boundary_dist
-    rows, cand, radius = rows[near], cand[near], radius[near]
+    rows, cand, regions = rows[near], cand[near], regions[near]
     if len(cand) == 0:
-        return rows, radius
-    bad = close_to_index(field, index, cand, radius, opt.min_dist)
-    return rows[~bad], radius[~bad]
+        return rows, regions
+    bad = close_to_index(field, index, cand, regions, opt.min_dist)
+    return rows[~bad], regions[~bad]
 
 
 def conflict_free(
-    field: MetricField, cand: NDArray, radius: NDArray, opt: SamplingOptions
+    field: MetricField, cand: NDArray, regions: SearchRegions, opt: SamplingOptions
 ) -> NDArray:
-    """Rows ``(k,)`` of the candidates ``cand`` ``(m, 2)`` (search half-widths ``radius``)
-    kept greedily in order, none closer than ``min_dist`` to an earlier kept one."""
-    i, j = pairs_within_boxes(cand, radius)
+    """Rows ``(k,)`` of the candidates ``cand`` ``(m, 2)`` (search regions ``regions``)
+    kept greedily in order, none closer than ``min_dist`` to an earlier kept one (the
+    pairs in each other's boxes are tested)."""
+    i, j = pairs_within_boxes(cand, regions.halfwidth)
     close = too_close(field, cand[i], cand[j], opt.min_dist)
     return _greedy_independent(len(cand), i[close], j[close])
 

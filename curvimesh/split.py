@@ -35,7 +35,7 @@ from curvimesh.geodesic import parabola_points
 from curvimesh.mesh import Mesh, independent_flips, local_edge, rotate_triangles
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths, edge_lengths_fast, metric_areas, quality_from
-from curvimesh.sampling import close_to_index, search_halfwidths
+from curvimesh.sampling import close_to_index, search_regions
 from curvimesh.spatial import PointIndex
 
 #: Fractions of the optimal offset tried for a new edge's node, in order.
@@ -180,8 +180,8 @@ def _split_round(
         index.add(pts[corners])
         vp = pts[v[good]]
         own = np.searchsorted(corners, v[good])  # the vertex's own index id
-        hw = search_halfwidths(field, vp, 2.0 * min_dist)
-        good = good[~close_to_index(field, index, vp, hw, min_dist, exclude=own)]
+        regions = search_regions(field, vp, 2.0 * min_dist)
+        good = good[~close_to_index(field, index, vp, regions, min_dist, exclude=own)]
     if good.size == 0:
         return mesh, 0
     # non-conflicting, longest first

@@ -131,3 +131,35 @@ def test_gap_filling_without_retesting_refused_candidates_is_the_same(name, monk
     tested_again = fill.fill_gaps(fld, pts, opt)
     assert len(remembered) > len(pts)
     np.testing.assert_array_equal(remembered, tested_again)
+
+
+@pytest.mark.parametrize(
+    "name", ["toy", "three_toys", "front", "circular_layer", "boundary_layer", "quartic2"]
+)
+def test_search_regions_hold_every_point_closer_than_min_dist(name):
+    # random points and their pairs closer than 0.7 by shortest parabola: the second
+    # lies in the first's search region (an ellipse inside a box), which is much
+    # smaller than the square of the largest size where the metric is anisotropic
+    from curvimesh.geodesic import shortest_parabola
+    from curvimesh.spatial import pairs_within_boxes
+
+    fld = load_metric(METRICS / f"{name}.yaml")
+    rng = np.random.default_rng(11)
+    xmin, ymin, xmax, ymax = fld.box
+    pts = rng.uniform([xmin, ymin], [xmax, ymax], (3000, 2))
+    regions = sampling.search_regions(fld, pts, 1.4)
+    square = regions.halfwidth.max(axis=1)
+    i, j = pairs_within_boxes(pts, 2.0 * square)
+    i, j = np.concatenate([i, j]), np.concatenate([j, i])
+    length = shortest_parabola(fld, pts[i], pts[j]).length
+    close = length < 0.7
+    assert close.sum() > 50
+    d = pts[j[close]] - pts[i[close]]
+    q = regions.quad[i[close]]
+    inside = q[:, 0] * d[:, 0] ** 2 + 2 * q[:, 1] * d[:, 0] * d[:, 1] + q[:, 2] * d[:, 1] ** 2
+    assert (inside <= 1.0).all()
+    assert (np.abs(d) <= regions.halfwidth[i[close]]).all()
+    # the ellipses' areas against the squares' (π/4 of the square where isotropic)
+    det = regions.quad[:, 0] * regions.quad[:, 2] - regions.quad[:, 1] ** 2
+    ratio = np.median(np.pi / np.sqrt(det) / (4 * square**2))
+    assert ratio <= math.pi / 4 + 1e-9
