@@ -326,7 +326,7 @@ def any_closer_in_index(
         return geodesic.any_closer_in_index(
             field, a, mins, maxs, index, exclude, short, straight_order=straight_order, quad=quad
         )
-    offsets, hit = geodesic.index_neighbours(index, mins, maxs, exclude, quad)
+    offsets, hit = geodesic.index_neighbours(index, mins, maxs, exclude, quad, a)
     return any_closer(field, a, index.points, offsets, hit, short, straight_order=straight_order)
 
 

@@ -866,7 +866,7 @@ def _closeness_rule(short: float, straight_order: int) -> tuple:
 
 def inscribed_quads(mins: NDArray, maxs: NDArray) -> NDArray:
     """(Q11, Q12, Q22) ``(k, 3)`` of the ellipses inscribed in the boxes [mins, maxs]
-    (half-axes the half-widths; a flat box gives an infinite Q: its centre alone)."""
+    (half-axes the half-widths; a flat box gives an infinite Q, which holds no point)."""
     half = 0.5 * (np.asarray(maxs, dtype=float) - np.asarray(mins, dtype=float))
     with np.errstate(divide="ignore"):
         inv = 1.0 / (half * half)
@@ -874,16 +874,22 @@ def inscribed_quads(mins: NDArray, maxs: NDArray) -> NDArray:
 
 
 def index_neighbours(
-    index, mins: NDArray, maxs: NDArray, exclude: NDArray, quad: NDArray | None = None
+    index,
+    mins: NDArray,
+    maxs: NDArray,
+    exclude: NDArray,
+    quad: NDArray | None = None,
+    centre: NDArray | None = None,
 ):
     """Offsets ``(k + 1,)`` and ids of the points of ``index`` in each box ``[mins[i],
-    maxs[i]]`` and the ellipse ``quad[i]`` about its centre (:func:`curvimesh.kernels.
-    in_region`; by default the one inscribed in the box, :func:`inscribed_quads`) but
-    ``exclude[i]``, as :func:`any_closer` takes them."""
+    maxs[i]]`` and the ellipse ``quad[i]`` about ``centre[i]`` (:func:`curvimesh.kernels.
+    in_region`; by default the one inscribed in the box, about its centre,
+    :func:`inscribed_quads`) but ``exclude[i]``, as :func:`any_closer` takes them."""
     if quad is None:
         quad = inscribed_quads(mins, maxs)
     q, hit = index.query(mins, maxs)
-    centre = 0.5 * (np.asarray(mins) + np.asarray(maxs))
+    if centre is None:
+        centre = 0.5 * (np.asarray(mins) + np.asarray(maxs))
     inside = np.empty(len(q), dtype=np.bool_)
     kernels.in_region(*_rows(index.points[hit], centre[q], quad[q]), inside)
     other = (hit != exclude[q]) & inside
@@ -915,7 +921,7 @@ def any_closer_in_index(
         quad = inscribed_quads(mins, maxs)
     cm = field.kernel
     if cm is None or index.packed() is None or len(a) == 0:
-        offsets, hit = index_neighbours(index, mins, maxs, exclude, quad)
+        offsets, hit = index_neighbours(index, mins, maxs, exclude, quad, a)
         return any_closer(
             field, a, index.points, offsets, hit, short, straight_order=straight_order
         )
