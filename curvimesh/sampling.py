@@ -85,13 +85,8 @@ class SamplingOptions:
     max_points: int = 2_000_000
 
 
-def principal_directions(field: MetricField, pts: NDArray) -> NDArray:
-    """Unit eigenvectors ``(n, 4, 2)``: +v₁, −v₁, +v₂, −v₂ of g at each point."""
-    return _directions(field.tensor(pts))
-
-
-def _directions(g: NDArray) -> NDArray:
-    """:func:`principal_directions` of the tensors ``g`` ``(n, 2, 2)``."""
+def principal_directions(g: NDArray) -> NDArray:
+    """Unit eigenvectors ``(n, 4, 2)``: +v₁, −v₁, +v₂, −v₂ of the tensors ``g`` ``(n, 2, 2)``."""
     _, vec = np.linalg.eigh(g)
     v1, v2 = vec[:, :, 0], vec[:, :, 1]
     return np.stack([v1, -v1, v2, -v2], axis=1)
@@ -194,12 +189,14 @@ def search_regions(field: MetricField, pts: NDArray, radius: float) -> SearchReg
         [g0[:, None], field.tensor(probe.reshape(-1, 2), check=False).reshape(n, -1, 2, 2)],
         axis=1,
     )  # (n, 9, 2, 2): the centre, then the box samples
+    with np.errstate(invalid="ignore", divide="ignore"):
+        size = 1.0 / np.sqrt(smallest_eigenvalue(g[:, 1:].reshape(-1, 2, 2)).reshape(n, -1))
+    size[~np.isfinite(size)] = 0.0
+    reach = SAMPLED_GROWTH * radius
+    hw = reach * np.maximum(size.max(axis=1), h)
     s11, s12, s22 = _size_tensors(g)
     ok = np.isfinite(s11) & np.isfinite(s12) & np.isfinite(s22) & (s11 > 0)
     ok &= s11 * s22 - s12 * s12 > 0
-    largest = np.where(ok, 0.5 * (s11 + s22) + np.hypot(0.5 * (s11 - s22), s12), 0.0)
-    reach = SAMPLED_GROWTH * radius
-    hw = reach * np.sqrt(np.maximum(largest.max(axis=1), h * h))
     # the union of the defined samples (an undefined one repeats the first defined)
     first = np.argmax(ok, axis=1)
     rows = np.arange(n)
@@ -441,7 +438,7 @@ def sample_points(
     arrival = np.full(front.shape, np.nan)  # the velocity each point was reached with
     while len(front) and index.size < opt.max_points:
         g = field.tensor(front)
-        dirs = _directions(g)
+        dirs = principal_directions(g)
         ahead = ~backward(g, dirs, arrival).ravel()
         dirs = dirs.reshape(-1, 2)[ahead]
         starts = np.repeat(front, 4, axis=0)[ahead]

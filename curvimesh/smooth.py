@@ -78,13 +78,9 @@ def tracked_lengths(
     bend = geodesic_alpha(field, a, b)
     bend[~np.isfinite(bend)] = 0.0
     k = len(edges)
+    aa, bb = np.concatenate([a, a]), np.concatenate([b, b])
     both = parabola_length_rule(
-        field,
-        np.concatenate([a, a]),
-        np.concatenate([b, b]),
-        parabola_midnode(
-            np.concatenate([a, a]), np.concatenate([b, b]), np.concatenate([alpha, bend])
-        ),
+        field, aa, bb, parabola_midnode(aa, bb, np.concatenate([alpha, bend]))
     )
     use_bend = both[k:] < both[:k]
     return np.where(use_bend, both[k:], both[:k]), np.where(use_bend, bend, alpha)

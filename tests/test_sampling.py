@@ -39,7 +39,7 @@ def test_backward_is_the_direction_within_20_degrees_of_the_way_back_in_the_metr
     r = math.exp(log_ratio)
     rot = rotation(angle)
     g = rot @ np.diag([1.0, r * r]) @ rot.T
-    dirs = sampling._directions(g[None])
+    dirs = sampling.principal_directions(g[None])
     k = int(heading // (math.pi / 2)) % 4
     axis = [0.0, math.pi / 2, math.pi, 3 * math.pi / 2][k]
     back = axis + math.radians(off)  # the way back, in the identity coordinates
@@ -84,13 +84,13 @@ def test_a_shot_back_along_the_geodesic_would_be_refused():
     rng = np.random.default_rng(3)
     start = rng.uniform(-0.9, 0.9, (400, 2))
     g = fld.tensor(start)
-    dirs = sampling._directions(g)
+    dirs = sampling.principal_directions(g)
     pick = rng.integers(0, 4, len(start))
     d = dirs[np.arange(len(start)), pick]
     shot = sampling.shoot(fld, start, d, opt.spacing, tol=opt.shoot_tol)
     child, arrival = shot.end[shot.ok], shot.velocity[shot.ok]
     gc = fld.tensor(child)
-    cdirs = sampling._directions(gc)
+    cdirs = sampling.principal_directions(gc)
     flags = sampling.backward(gc, cdirs, arrival)
     # at most one way back from each child (none where the frame turned more than 20°)
     assert flags.sum(axis=1).max() == 1 and flags.sum() > 0.9 * len(child)
