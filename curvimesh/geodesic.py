@@ -388,7 +388,12 @@ def shortest_parabola(
 
     With ``remember`` the searches are looked up in, and added to, the field's
     memo (:class:`_SearchMemo`); callers whose end points are new every time
-    (points that move, shots) pass False.
+    (points that move, shots) pass False. The compiled searches of the pairs
+    not in the memo walk from the geodesic's bend at the chord's middle
+    (:func:`geodesic_alpha`) and keep its minimum when no value of the coarse
+    scan is shorter, else search as above
+    (:func:`curvimesh.kernels.shortest_parabolas_guided`): still a function of
+    the pair alone, so the memo stays exact.
 
     ``start`` ``(n,)`` are guesses of α (NaN: none), for pairs whose points
     moved a little since their last search: the compiled search walks downhill
@@ -416,7 +421,12 @@ def shortest_parabola(
         alpha, f_alpha, found = memo.find(keys)
         todo = np.flatnonzero(~found)
         if todo.size:
-            a, f = _search_alpha(field, x0[todo], x1[todo], grid, alpha_tol, segments, order)
+            guess = None
+            if field.kernel is not None:
+                guess = geodesic_alpha(field, x0[todo], x1[todo])
+            a, f = _search_alpha(
+                field, x0[todo], x1[todo], grid, alpha_tol, segments, order, guess=guess
+            )
             alpha[todo], f_alpha[todo] = a, f
             memo.add(keys[todo], a, f)
     mid = mid0 + alpha[:, None] * nrm
@@ -427,22 +437,28 @@ def shortest_parabola(
     return Parabolas(alpha, mid, ln)
 
 
-def _search_alpha(field, x0, x1, grid, alpha_tol, segments, order, start=None):
-    """α ``(n,)`` of the shortest parabolas by :func:`shortest_parabola`'s search (from
-    the guesses ``start`` when given and compiled), and the fixed rule's length there
-    ``(n,)``."""
+def _search_alpha(field, x0, x1, grid, alpha_tol, segments, order, start=None, guess=None):
+    """α ``(n,)`` of the shortest parabolas by :func:`shortest_parabola`'s search, and the
+    fixed rule's length there ``(n,)``. Compiled, from the guesses ``start`` when given
+    (:func:`curvimesh.kernels.shortest_parabolas_near`), else from the guesses ``guess``
+    checked against the scan (:func:`curvimesh.kernels.shortest_parabolas_guided`)."""
     cm = field.kernel
     if cm is not None:
         alpha, f_alpha = np.empty(len(x0)), np.empty(len(x0))
         t, w = _gauss(segments, order)
         a, b = _rows(x0, x1)
-        if start is None:
-            kernels.shortest_parabolas(cm.g, a, b, grid, t, w, alpha_tol, 60, alpha, f_alpha)
-        else:
+        if start is not None:
             (s,) = _rows(start)
             kernels.shortest_parabolas_near(
                 cm.g, a, b, s, grid, t, w, alpha_tol, 60, alpha, f_alpha
             )
+        elif guess is not None:
+            (s,) = _rows(guess)
+            kernels.shortest_parabolas_guided(
+                cm.g, a, b, s, grid, t, w, alpha_tol, 60, alpha, f_alpha
+            )
+        else:
+            kernels.shortest_parabolas(cm.g, a, b, grid, t, w, alpha_tol, 60, alpha, f_alpha)
         return alpha, f_alpha
     n = len(x0)
     nrm = bisector_normal(x0, x1)

@@ -789,6 +789,39 @@ def _search_near(fn, ax, ay, bx, by, start, grid, t, w, tol, max_iter):
     return a, f
 
 
+@njit(**_JIT)
+def _search_guided(fn, ax, ay, bx, by, guess, grid, t, w, tol, max_iter):
+    """The shortest-parabola search of one row from a guess of α that may be far off;
+    returns (α, length).
+
+    :func:`_search_near` from ``guess``, kept when its α is, by the coarse rule of
+    the scan (:data:`COARSE_T`), no longer than the parabola at every value of
+    ``grid``; otherwise the scan's search (:func:`_scanned`), as without a guess.
+    The check costs the coarse scan alone (three lengths a value), not the scan's
+    refinement, and keeps the scan's guarantee: no scanned α is shorter than the
+    one returned (the guess's local minimum can be a poor one where the metric
+    varies fast, as across a clamped function's kinks).
+    """
+    if not math.isfinite(guess) or guess < grid[0] or guess > grid[-1]:
+        return _scanned(fn, ax, ay, bx, by, grid, t, w, tol, max_iter)
+    a, f = _search_near(fn, ax, ay, bx, by, guess, grid, t, w, tol, max_iter)
+    found = _offset_length(fn, ax, ay, bx, by, a, COARSE_T, COARSE_W)
+    for j in range(grid.shape[0]):
+        if not (_offset_length(fn, ax, ay, bx, by, grid[j], COARSE_T, COARSE_W) >= found):
+            return _scanned(fn, ax, ay, bx, by, grid, t, w, tol, max_iter)
+    return a, f
+
+
+@_row_kernel(min_rows=SEARCH_PARALLEL_ROWS)
+def shortest_parabolas_guided(fn, x0, x1, guess, grid, t, w, tol, max_iter, alpha, length):
+    """The search of :func:`curvimesh.geodesic.shortest_parabola` from guesses ``guess``
+    of α that may be far off (NaN: none), one row at a time (:func:`_search_guided`)."""
+    for i in prange(x0.shape[0]):
+        alpha[i], length[i] = _search_guided(
+            fn, x0[i, 0], x0[i, 1], x1[i, 0], x1[i, 1], guess[i], grid, t, w, tol, max_iter
+        )
+
+
 @_row_kernel(min_rows=SEARCH_PARALLEL_ROWS)
 def shortest_parabolas(fn, x0, x1, grid, t, w, tol, max_iter, alpha, length):
     """The search of :func:`curvimesh.geodesic.shortest_parabola`, one row at a time
