@@ -38,12 +38,17 @@ def _on_box(points: NDArray, box: tuple[float, float, float, float]) -> NDArray:
     )
 
 
+#: The tolerance in α of the relocation's shortest-parabola searches.
+ALPHA_TOL = 2e-3
+
+
 def edge_parabola_lengths(
     field: MetricField, points: NDArray, edges: NDArray, start: NDArray | None = None
 ) -> tuple[NDArray, NDArray]:
-    """Lengths ``(E,)`` of the shortest parabolas of edges ``(E, 2)`` (search accuracy)
-    and their α ``(E,)``, searched from the guesses ``start`` ``(E,)`` of α if given,
-    else from the geodesic's bend at each chord's middle (:func:`geodesic_alpha`)."""
+    """Lengths ``(E,)`` of the shortest parabolas of edges ``(E, 2)`` (search accuracy,
+    α to :data:`ALPHA_TOL`) and their α ``(E,)``, searched from the guesses ``start``
+    ``(E,)`` of α if given, else from the geodesic's bend at each chord's middle
+    (:func:`geodesic_alpha`)."""
     if start is None:
         start = geodesic_alpha(field, points[edges[:, 0]], points[edges[:, 1]])
     par = shortest_parabola(
@@ -51,7 +56,7 @@ def edge_parabola_lengths(
         points[edges[:, 0]],
         points[edges[:, 1]],
         scan=5,
-        alpha_tol=2e-3,
+        alpha_tol=ALPHA_TOL,
         exact_length=False,
         remember=False,  # the vertices move at every sweep
         start=start,
@@ -72,18 +77,23 @@ def tracked_lengths(
     O(δ²). The bend alone is within 1e-3 of the optimum α at the 99th percentile
     of the three toys' edges, but can be far off where the geodesic bends hard
     (α 0.63 for 0.20, a length 1.46 times too long, on 1 edge in 10⁵); the α
-    of the last sweep, at ends moved by a few hundredths, is not.
+    of the last sweep, at ends moved by a few hundredths, is not. Where the two
+    are within the searches' tolerance (:data:`ALPHA_TOL`) they are one guess
+    to the accuracy α is known with, and only the last α is measured (most
+    edges: one length instead of two).
     """
     a, b = points[edges[:, 0]], points[edges[:, 1]]
     bend = geodesic_alpha(field, a, b)
     bend[~np.isfinite(bend)] = 0.0
-    k = len(edges)
-    aa, bb = np.concatenate([a, a]), np.concatenate([b, b])
-    both = parabola_length_rule(
-        field, aa, bb, parabola_midnode(aa, bb, np.concatenate([alpha, bend]))
-    )
-    use_bend = both[k:] < both[:k]
-    return np.where(use_bend, both[k:], both[:k]), np.where(use_bend, bend, alpha)
+    other = np.flatnonzero(~(np.abs(bend - alpha) <= ALPHA_TOL))
+    rows = np.concatenate([np.arange(len(edges)), other])
+    guess = np.concatenate([alpha, bend[other]])
+    ln = parabola_length_rule(field, a[rows], b[rows], parabola_midnode(a[rows], b[rows], guess))
+    length, kept = ln[: len(edges)], np.array(alpha, dtype=float, copy=True)
+    use_bend = ln[len(edges) :] < length[other]
+    length[other[use_bend]] = ln[len(edges) :][use_bend]
+    kept[other[use_bend]] = bend[other[use_bend]]
+    return length, kept
 
 
 def carried(old_edges: NDArray, values: NDArray, edges: NDArray, n: int) -> NDArray:
