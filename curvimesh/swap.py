@@ -205,6 +205,10 @@ def swap(
         edge_lengths_fast(field, pts[e[:, 0]], pts[e[:, 1]], mids),
     )
     tris = np.array(p1.corners)
+
+    def stored_length(u: NDArray, v: NDArray) -> NDArray:
+        return store.length[store.find(store.key(u, v))[0]]
+
     optimal = EdgeStore(n)  # optimal nodes of candidate new edges
     rejected = np.zeros(0, dtype=np.dtype((np.void, 32)))
     swaps = rounds = 0
@@ -231,15 +235,18 @@ def swap(
         if len(a) == 0:
             break
         # candidates no new edge could make worth it, before searching their parabolas
-        outer = sum(
-            store.length[store.find(store.key(u, v))[0]] ** 2
-            for u, v in ((a, d), (c, a), (d, b), (b, c))
-        )
+        outer = sum(stored_length(u, v) ** 2 for u, v in ((a, d), (c, a), (d, b), (b, c)))
         bound = quality_bound(area[t1] + area[t2], outer, chord_lower_bound(field, pts[c], pts[d]))
         q_old = np.minimum(q[t1], q[t2])
         if length_rule:
+            # every case keeps the pair's quality clipped at the floor; with the old
+            # edge in the range (no case 2) a pair that cannot gain quality has
+            # neither case 1 nor case 3
             floor = max(min_quality, float(q.min()))
-            hopeless = np.minimum(bound, floor) < np.minimum(q_old, floor)
+            in_range = out_of_range(stored_length(a, b), length_range) <= min_gain
+            hopeless = (np.minimum(bound, floor) < np.minimum(q_old, floor)) | (
+                in_range & (bound <= q_old + min_gain)
+            )
         else:
             hopeless = bound <= q_old + min_gain
         rejected = np.union1d(rejected, qk[hopeless])
@@ -305,7 +312,7 @@ def swap(
             )
             q_new, q_old = np.minimum(q1, q2), np.minimum(q[t1[v]], q[t2[v]])
             gain[v] = q_new - q_old
-            l_ab = store.length[store.find(store.key(a[v], b[v]))[0]]
+            l_ab = stored_length(a[v], b[v])
             if length_rule:
                 gain[v] = length_rule_gain(
                     q_old,
