@@ -41,9 +41,11 @@ new one with a better pair (cases 2, 3), against what the swap required;
 Swaps are made in rounds: every candidate is evaluated at once, the
 improving ones are taken greedily by decreasing gain so that no two touch
 the same triangle, and they are applied together. A candidate's outcome
-depends only on its four corners (the outer edges keep their nodes), so
-rejected ones are remembered and not evaluated again. Rounds stop when
-nothing improves (or after ``max_rounds``, a guard against cycles).
+depends only on its two triangles (their corners, and the nodes of their
+edges, which stay while the triangles do), so a rejected one is remembered,
+by the ids of its triangles, until one of them is flipped (a flip rewrites
+its triangles in place), and not evaluated again meanwhile. Rounds stop
+when nothing improves (or after ``max_rounds``, a guard against cycles).
 """
 
 from __future__ import annotations
@@ -73,9 +75,12 @@ from curvimesh.quality import edge_lengths_fast, metric_areas, quality_from
 BACKTRACK = (1.0, 0.5, 0.25, 0.125, 0.0)
 
 
-def _row_keys(rows: NDArray) -> NDArray:
-    rows = np.ascontiguousarray(rows, dtype=np.int64)
-    return rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).ravel()
+def _contains(sorted_keys: NDArray, keys: NDArray) -> NDArray[np.bool_]:
+    """Whether each of ``keys`` is in the ascending array ``sorted_keys``."""
+    if len(sorted_keys) == 0:
+        return np.zeros(len(keys), dtype=bool)
+    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+    return sorted_keys[pos] == keys
 
 
 @dataclass(frozen=True)
@@ -210,7 +215,8 @@ def swap(
         return store.length[store.find(store.key(u, v))[0]]
 
     optimal = EdgeStore(n)  # optimal nodes of candidate new edges
-    rejected = np.zeros(0, dtype=np.dtype((np.void, 32)))
+    m = len(tris)
+    rejected = np.zeros(0, dtype=np.int64)  # t1 * m + t2 of rejected candidates, ascending
     swaps = rounds = 0
     q = area = flipped = None
     while rounds < max_rounds:
@@ -229,8 +235,8 @@ def swap(
         )
         q[redo] = quality_from(area[redo], elen[tri_edges[redo]])
         _, t1, t2, a, b, c, d = flip_candidates(cur)
-        qk = _row_keys(np.column_stack([a, b, c, d]))
-        fresh = ~np.isin(qk, rejected)
+        qk = t1 * m + t2
+        fresh = ~_contains(rejected, qk)
         a, b, c, d, t1, t2, qk = (v[fresh] for v in (a, b, c, d, t1, t2, qk))
         if len(a) == 0:
             break
@@ -249,7 +255,7 @@ def swap(
             )
         else:
             hopeless = bound <= q_old + min_gain
-        rejected = np.union1d(rejected, qk[hopeless])
+        rejected = np.sort(np.concatenate([rejected, qk[hopeless]]))  # fresh: not in it
         a, b, c, d, t1, t2, qk = (v[~hopeless] for v in (a, b, c, d, t1, t2, qk))
         if len(a) == 0:
             break
@@ -328,13 +334,16 @@ def swap(
             new_len = np.zeros(len(a))
             new_len[v] = l_cd
         good = np.flatnonzero(gain > min_gain)
-        rejected = np.union1d(rejected, qk[gain <= min_gain])
+        rejected = np.sort(np.concatenate([rejected, qk[gain <= min_gain]]))
         if good.size == 0:
             break
         # greedy non-conflicting selection by decreasing gain (ties: candidate order)
         ch = good[independent_flips(t1[good], t2[good], gain[good], len(tris))]
         tris = apply_flips(tris, ch, t1, t2, a, b, c, d)
         flipped = np.concatenate([t1[ch], t2[ch]])
+        changed = np.zeros(m, dtype=bool)
+        changed[flipped] = True
+        rejected = rejected[~(changed[rejected // m] | changed[rejected % m])]
         store.add(store.key(c[ch], d[ch]), new_mid[ch], new_len[ch])
         swaps += len(ch)
         rounds += 1
