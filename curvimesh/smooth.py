@@ -144,9 +144,16 @@ def _undo_bad_moves(
     is_moved[moved] = True
     longest = np.maximum(max_length, old_length)
 
+    def touching(rows: NDArray, mask: NDArray) -> NDArray:
+        # ascending ids of the rows (of edges or triangles) with a corner in mask
+        hit = mask[rows[:, 0]]
+        for k in range(1, rows.shape[1]):
+            hit |= mask[rows[:, k]]
+        return np.flatnonzero(hit)
+
     def measure(rows: NDArray) -> None:
         # rows with a moved end are searched at their new ends, the others are back
-        now = is_moved[edges[rows]].any(axis=1)
+        now = is_moved[edges[rows, 0]] | is_moved[edges[rows, 1]]
         back = rows[~now]
         length[back], alpha[back], bad_e[back] = old_length[back], old_alpha[back], False
         rows = rows[now]
@@ -157,22 +164,21 @@ def _undo_bad_moves(
         bad_e[rows] = (ln < min_dist) | (ln > longest[rows])
 
     bad_t = signed_areas(new, tris) <= 0
-    measure(np.flatnonzero(is_moved[edges].any(axis=1)))
-    while moved.size:
-        bad_v = np.zeros(n, dtype=bool)
-        bad_v[tris[bad_t].ravel()] = True
-        bad_v[edges[bad_e].ravel()] = True
-        undo = moved[bad_v[moved] & (np.abs(new[moved] - old[moved]).max(axis=1) > 0)]
+    measure(touching(edges, is_moved))
+    while True:
+        # the moved corners of the bad triangles and ends of the bad edges, ascending
+        ends = np.concatenate([tris[bad_t].ravel(), edges[bad_e].ravel()])
+        ends = np.unique(ends[is_moved[ends]])
+        undo = ends[np.abs(new[ends] - old[ends]).max(axis=1) > 0]
         if undo.size == 0:
             break
         new[undo] = old[undo]
         undone = np.zeros(n, dtype=bool)
         undone[undo] = True
-        moved = moved[~undone[moved]]  # ascending, as np.setdiff1d would give
         is_moved[undo] = False
-        at = np.flatnonzero(undone[tris].any(axis=1))
+        at = touching(tris, undone)
         bad_t[at] = signed_areas(new, tris[at]) <= 0
-        measure(np.flatnonzero(undone[edges].any(axis=1)))
+        measure(touching(edges, undone))
     return new, length, alpha
 
 
