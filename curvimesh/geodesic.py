@@ -326,12 +326,16 @@ def parabola_length(
     rtol: float = 1e-5,
     order: int = 5,
     max_segments: int = 256,
+    two_segments: NDArray | None = None,
 ) -> NDArray:
     """Metric length of parabolas ``(n,)`` to relative accuracy ``rtol``.
 
     Composite Gauss–Legendre with S and 2S segments; the rows whose two
     answers differ by more than rtol are refined again (S doubled) until
     ``max_segments``. ``xm`` defaults to the midpoints (straight edges).
+    ``two_segments`` ``(n,)``, when given, are the rows' lengths by the rule of
+    two segments (:func:`parabola_length_rule`, same order), used instead of
+    computing them again.
     """
     x0 = np.asarray(x0, dtype=float).reshape(-1, 2)
     x1 = np.asarray(x1, dtype=float).reshape(-1, 2)
@@ -342,7 +346,10 @@ def parabola_length(
     prev = parabola_length_rule(field, x0, x1, xm, segments=s, order=order)
     while todo.size:
         s *= 2
-        cur = parabola_length_rule(field, x0[todo], x1[todo], xm[todo], segments=s, order=order)
+        if s == 2 and two_segments is not None:
+            cur = np.asarray(two_segments, dtype=float)[todo]
+        else:
+            cur = parabola_length_rule(field, x0[todo], x1[todo], xm[todo], segments=s, order=order)
         with np.errstate(invalid="ignore"):
             done = (
                 (np.abs(cur - prev) <= rtol * np.abs(cur)) | ~np.isfinite(cur) | (s >= max_segments)

@@ -134,17 +134,19 @@ def edge_lengths(
     """Metric lengths ``(E,)`` of edges ``(E, 2)`` through middle nodes ``mids`` ``(E,)``.
 
     ``mids`` are node indices (or None: straight edges), and lengths are
-    accurate to ``rtol`` relative (adaptive composite Gauss–Legendre).
+    accurate to ``rtol`` relative (adaptive composite Gauss–Legendre). Its
+    rule of two segments is :func:`edge_lengths_fast`'s, taken from there
+    (remembered by the optimisation loops for most edges).
     """
     x0, x1 = points[edges[:, 0]], points[edges[:, 1]]
     xm = 0.5 * (x0 + x1) if mids is None else points[mids]
-    return _memoised(
-        field,
-        ("edge_lengths", rtol),
-        6,
-        np.column_stack([x0, x1, xm]),
-        lambda r: parabola_length(field, r[:, 0:2], r[:, 2:4], r[:, 4:6], rtol=rtol),
-    )
+
+    def compute(r: NDArray) -> NDArray:
+        a, b, m = r[:, 0:2], r[:, 2:4], r[:, 4:6]
+        two = edge_lengths_fast(field, a, b, m)
+        return parabola_length(field, a, b, m, rtol=rtol, two_segments=two)
+
+    return _memoised(field, ("edge_lengths", rtol), 6, np.column_stack([x0, x1, xm]), compute)
 
 
 def edge_lengths_fast(field: MetricField, x0: NDArray, x1: NDArray, xm: NDArray) -> NDArray:
