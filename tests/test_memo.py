@@ -7,6 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from curvimesh import memo
+from curvimesh.geodesic import parabola_length
 from curvimesh.memo import RowMemo, memoised
 from curvimesh.metric import load_metric_text
 from curvimesh.quality import edge_lengths_fast, metric_areas
@@ -98,6 +99,12 @@ metric:
     x0, x1, xm = corners[:, 0], corners[:, 1], mids[:, 0]
     first = edge_lengths_fast(fld, x0, x1, xm)
     assert np.array_equal(edge_lengths_fast(fld, x0[::-1], x1[::-1], xm[::-1]), first[::-1])
+    # exact lengths take their two-segment level from those: the adaptive rule's values
+    pts = np.concatenate([x0, x1, xm])
+    edges, mid_ids = np.column_stack([np.arange(200), np.arange(200, 400)]), np.arange(400, 600)
+    for rtol in (1e-4, 1e-6):
+        exact = quality.edge_lengths(fld, pts, edges, mid_ids, rtol=rtol)
+        assert np.array_equal(exact, parabola_length(fresh, x0, x1, xm, rtol=rtol))
 
 
 def test_adapt_gives_the_same_mesh_without_the_tables(monkeypatch):
