@@ -1983,3 +1983,199 @@ HELPERS = {
     "grid_tensor": grid_tensor,
     "grid_array": grid_array,
 }
+
+
+# --------------------------------------------------------------------------- #
+# Walks and conflict sets in a Euclidean Delaunay triangulation                #
+# --------------------------------------------------------------------------- #
+
+#: Relative error bound of the predicates below: a determinant within this
+#: fraction of its permanent (the sum of the absolute values of its terms) has
+#: no trusted sign (the floating-point error is below 1e-14 of the permanent).
+PREDICATE_TOL = 1e-10
+
+
+@njit(**_JIT)
+def _orient(pts, a, b, qx, qy):
+    """(d, permanent) of the orientation of q against the directed line a → b:
+    d = (b − a) × (q − a), positive when q lies on its left."""
+    ux = pts[b, 0] - pts[a, 0]
+    uy = pts[b, 1] - pts[a, 1]
+    vx = qx - pts[a, 0]
+    vy = qy - pts[a, 1]
+    return ux * vy - uy * vx, abs(ux * vy) + abs(uy * vx)
+
+
+@njit(**_JIT)
+def in_circle_point(pts, a, b, c, qx, qy):
+    """(d, permanent) of the in-circle determinant of q against counter-clockwise (a, b, c).
+
+    With a, b, c taken relative to q, d = |a|² (b × c) + |b|² (c × a) + |c|² (a × b)
+    (the lifting-map determinant), positive when q lies strictly inside the
+    circumcircle.
+
+    >>> p = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    >>> in_circle_point(p, 0, 1, 2, 0.5, 0.5)[0] > 0, in_circle_point(p, 0, 1, 2, 2.0, 2.0)[0] < 0
+    (True, True)
+    """
+    ax, ay = pts[a, 0] - qx, pts[a, 1] - qy
+    bx, by = pts[b, 0] - qx, pts[b, 1] - qy
+    cx, cy = pts[c, 0] - qx, pts[c, 1] - qy
+    na, nb, nc = ax * ax + ay * ay, bx * bx + by * by, cx * cx + cy * cy
+    d = na * (bx * cy - by * cx) + nb * (cx * ay - cy * ax) + nc * (ax * by - ay * bx)
+    perm = (
+        na * (abs(bx * cy) + abs(by * cx))
+        + nb * (abs(cx * ay) + abs(cy * ax))
+        + nc * (abs(ax * by) + abs(ay * bx))
+    )
+    return d, perm
+
+
+@njit(**_JIT)
+def _walk(pts, corners, nbr, qx, qy, t):
+    """Visibility walk from triangle t towards q: crosses local edge k while q lies
+    decisively on its right (orientation below −:data:`PREDICATE_TOL` × permanent).
+    Returns the triangle where no edge sends q on, or −1 when the walk leaves the
+    triangulation or takes more steps than there are triangles (which a walk in a
+    Delaunay triangulation never does)."""
+    for _ in range(corners.shape[0] + 1):
+        nxt = -1
+        for k in range(3):
+            d, perm = _orient(pts, corners[t, k], corners[t, (k + 1) % 3], qx, qy)
+            if d < -PREDICATE_TOL * perm:
+                nxt = nbr[t, k]
+                if nxt < 0:
+                    return -1
+                break
+        if nxt < 0:
+            return t
+        t = nxt
+    return -1
+
+
+@njit(**_JIT)
+def delaunay_conflicts(pts, corners, nbr, q, conflict):
+    """Marks in ``conflict`` ``(m,)`` the triangles whose circumcircle strictly holds
+    some point of ``q`` ``(k, 2)`` (the cavities of Bowyer and Watson), in a
+    Delaunay triangulation ``corners`` ``(m, 3)`` of ``pts`` with neighbours ``nbr``.
+
+    For each q: a visibility walk (from where the last one ended) to a triangle
+    that holds q up to the tolerance, then a breadth-first search through the
+    neighbours whose circumcircle holds q (a cavity is edge-connected: it is
+    star-shaped from q). Returns 0, or −1 when a walk leaves the triangulation or
+    an in-circle determinant is within :data:`PREDICATE_TOL` × its permanent of 0
+    (q on a circumcircle, or q a vertex: the conflict set is then not certain).
+
+    >>> p = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.2]])
+    >>> tri, nbr = np.array([[0, 1, 2], [0, 2, 3]]), np.array([[-1, -1, 1], [0, -1, -1]])
+    >>> c = np.zeros(2, dtype=np.bool_)
+    >>> delaunay_conflicts(p, tri, nbr, np.array([[0.9, 0.05]]), c), c.tolist()
+    (0, [True, False])
+    """
+    m = corners.shape[0]
+    stamp = np.full(m, -1, dtype=np.int64)
+    stack = np.empty(m, dtype=np.int64)
+    t = 0
+    for i in range(q.shape[0]):
+        qx, qy = q[i, 0], q[i, 1]
+        s = _walk(pts, corners, nbr, qx, qy, t)
+        if s < 0:
+            return -1
+        t = s
+        d, perm = in_circle_point(pts, corners[s, 0], corners[s, 1], corners[s, 2], qx, qy)
+        if not d > PREDICATE_TOL * perm:
+            return -1
+        stamp[s] = i
+        stack[0] = s
+        top = 1
+        while top > 0:
+            top -= 1
+            s = stack[top]
+            conflict[s] = True
+            for k in range(3):
+                o = nbr[s, k]
+                if o < 0 or stamp[o] == i:
+                    continue
+                stamp[o] = i
+                d, perm = in_circle_point(pts, corners[o, 0], corners[o, 1], corners[o, 2], qx, qy)
+                if abs(d) <= PREDICATE_TOL * perm:
+                    return -1
+                if d > 0:
+                    stack[top] = o
+                    top += 1
+    return 0
+
+
+@njit(**_JIT)
+def strict_delaunay_sides(pts, corners, nbr, ok):
+    """``ok[t, k]`` ``(m, 3)``: whether the triangle across local edge k of t has its
+    far corner d strictly outside the circumcircle of t (in-circle determinant
+    below −:data:`PREDICATE_TOL` × its permanent); True on the boundary. Each
+    interior edge is measured once, from its lower triangle, and the verdict
+    written on both sides. Returns the number of interior edges not strictly
+    locally Delaunay.
+
+    >>> p = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    >>> tri, nbr = np.array([[0, 1, 2], [0, 2, 3]]), np.array([[-1, -1, 1], [0, -1, -1]])
+    >>> ok = np.empty((2, 3), dtype=np.bool_)
+    >>> strict_delaunay_sides(p, tri, nbr, ok), ok.tolist()  # co-circular
+    (1, [[True, True, False], [False, True, True]])
+    """
+    bad = 0
+    ok[:] = True
+    for t in range(corners.shape[0]):
+        for k in range(3):
+            o = nbr[t, k]
+            if o < t:
+                continue
+            a, b, c = corners[t, k], corners[t, (k + 1) % 3], corners[t, (k + 2) % 3]
+            d = -1
+            k2 = 0
+            for j in range(3):
+                if corners[o, j] != a and corners[o, j] != b:
+                    d = corners[o, j]
+                if nbr[o, j] == t:
+                    k2 = j
+            det, perm = in_circle_point(pts, a, b, c, pts[d, 0], pts[d, 1])
+            if not det < -PREDICATE_TOL * perm:
+                ok[t, k] = False
+                ok[o, k2] = False
+                bad += 1
+    return bad
+
+
+@njit(**_JIT)
+def flood_fill(nbr, wall, seeds, inside):
+    """Marks in ``inside`` ``(m,)`` the triangles reached from ``seeds`` ``(s,)`` through
+    the sides (t, k) that are not walls (``wall`` ``(m, 3)``), ``nbr[t, k]`` being
+    the triangle across local edge k of t, or −1. Returns the number marked.
+
+    >>> nbr = np.array([[1, -1, -1], [0, 2, -1], [1, -1, -1]])
+    >>> wall = np.zeros((3, 3), dtype=np.bool_)
+    >>> wall[1, 1] = wall[2, 0] = True
+    >>> inside = np.zeros(3, dtype=np.bool_)
+    >>> flood_fill(nbr, wall, np.array([0]), inside), inside.tolist()
+    (2, [True, True, False])
+    """
+    stack = np.empty(nbr.shape[0], dtype=np.int64)
+    top = 0
+    count = 0
+    for s in seeds:
+        if inside[s]:
+            continue
+        inside[s] = True
+        count += 1
+        stack[0] = s
+        top = 1
+        while top > 0:
+            top -= 1
+            t = stack[top]
+            for k in range(3):
+                o = nbr[t, k]
+                if wall[t, k] or o < 0 or inside[o]:
+                    continue
+                inside[o] = True
+                count += 1
+                stack[top] = o
+                top += 1
+    return count

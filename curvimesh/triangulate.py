@@ -17,18 +17,22 @@ from scipy.spatial import Delaunay, QhullError
 
 from curvimesh import kernels
 from curvimesh.errors import WorkError
-from curvimesh.mesh import Mesh, apply_flips, flip_candidates, independent_flips, signed_areas
+from curvimesh.mesh import (
+    Mesh,
+    apply_flips,
+    flip_candidates,
+    independent_flips,
+    is_conforming,
+    signed_areas,
+)
 
 
-def delaunay(points: NDArray, *, box: tuple[float, float, float, float] | None = None) -> Mesh:
-    """Delaunay triangulation ``Mesh`` (P1, counter-clockwise) of points ``(n, 2)``.
+def _qhull_triangles(pts: NDArray) -> NDArray[np.int64]:
+    """Triangles ``(m, 3)`` of Qhull's Delaunay triangulation of ``pts`` ``(n, 2)``,
+    counter-clockwise, without the flat ones (area ≤ 1e-14 × the box's largest side²).
 
-    Raises :class:`WorkError` if Qhull fails, leaves a point out, or makes a
-    flat triangle.
+    Raises :class:`WorkError` if Qhull fails.
     """
-    pts = np.asarray(points, dtype=float)
-    if len(pts) < 3:
-        raise WorkError(f"cannot triangulate {len(pts)} points")
     try:
         tri = Delaunay(pts, qhull_options="Qbb Qc Qz Q12")
     except QhullError as exc:
@@ -37,10 +41,51 @@ def delaunay(points: NDArray, *, box: tuple[float, float, float, float] | None =
     area = signed_areas(pts, simplices)
     flip = area < 0
     simplices[flip] = simplices[flip][:, [0, 2, 1]]
-    scale = np.ptp(pts, axis=0).max() ** 2
-    flat = np.abs(area) <= 1e-14 * scale
-    if flat.any():
-        simplices = simplices[~flat]
+    return simplices[np.abs(area) > _FLAT * _area_scale(pts)]
+
+
+#: A triangle whose area is at most this fraction of :func:`_area_scale` is flat.
+_FLAT = 1e-14
+
+
+def _area_scale(pts: NDArray) -> float:
+    """The square of the largest side of the bounding box of ``pts`` ``(n, 2)``."""
+    return float(np.ptp(pts, axis=0).max() ** 2)
+
+
+def canonical_triangles(tris: NDArray) -> NDArray[np.int64]:
+    """Triangles ``(m, 3)`` in canonical order: each row rotated (which keeps its
+    orientation) to start at its smallest id, then the rows sorted lexicographically.
+
+    Two lists of the same triangles give the same array.
+
+    >>> canonical_triangles(np.array([[5, 3, 4], [2, 0, 1], [1, 3, 0]])).tolist()
+    [[0, 1, 2], [0, 1, 3], [3, 4, 5]]
+    """
+    t = np.asarray(tris, dtype=np.int64).reshape(-1, 3)
+    first = np.argmin(t, axis=1)
+    t = np.take_along_axis(t, (first[:, None] + np.arange(3)) % 3, axis=1)
+    n = int(t.max(initial=0)) + 1
+    if n < 2**21:  # one key (t0 n + t1) n + t2 below 2⁶³; a stable sort merges sorted runs
+        order = np.argsort((t[:, 0] * n + t[:, 1]) * n + t[:, 2], kind="stable")
+    else:
+        order = np.lexsort((t[:, 2], t[:, 1], t[:, 0]))
+    return np.ascontiguousarray(t[order])
+
+
+def delaunay(points: NDArray, *, box: tuple[float, float, float, float] | None = None) -> Mesh:
+    """Delaunay triangulation ``Mesh`` (P1, counter-clockwise) of points ``(n, 2)``.
+
+    The triangles come in canonical order (:func:`canonical_triangles`): the mesh
+    is a function of the set of triangles, whichever way it was computed (as
+    :func:`delaunay_insert` does). Flat triangles (which Qhull can make of
+    collinear points) are dropped. Raises :class:`WorkError` if Qhull fails or
+    leaves a point out.
+    """
+    pts = np.asarray(points, dtype=float)
+    if len(pts) < 3:
+        raise WorkError(f"cannot triangulate {len(pts)} points")
+    simplices = _qhull_triangles(pts)
     used = np.zeros(len(pts), dtype=bool)
     used[simplices.ravel()] = True
     if not used.all():
@@ -50,7 +95,177 @@ def delaunay(points: NDArray, *, box: tuple[float, float, float, float] | None =
             f"Delaunay triangulation left {missing.size} point(s) out, "
             f"e.g. ({p[0]:.6g}, {p[1]:.6g}) (duplicate points?)"
         )
-    return Mesh(pts, simplices, box)
+    return Mesh(pts, canonical_triangles(simplices), box)
+
+
+def _walk_order(q: NDArray) -> NDArray[np.int64]:
+    """Indices ``(k,)`` that order points ``(k, 2)`` along a boustrophedon: about √k
+    horizontal bands, run left to right and right to left in turn, so that each
+    walk (:func:`curvimesh.kernels.delaunay_conflicts`) starts near its point."""
+    if len(q) < 2:
+        return np.arange(len(q))
+    lo, hi = q.min(axis=0), q.max(axis=0)
+    bands = int(np.ceil(np.sqrt(len(q))))
+    band = np.minimum(
+        ((q[:, 1] - lo[1]) / max(hi[1] - lo[1], 1e-300) * bands).astype(np.int64), bands - 1
+    )
+    x = np.where(band % 2 == 0, q[:, 0], -q[:, 0])
+    return np.lexsort((x, band))
+
+
+def strictly_delaunay(mesh: Mesh) -> NDArray[np.bool_]:
+    """``(E,)`` for each edge of :attr:`Mesh.edges`: True on the boundary, and on an
+    interior edge a-b of triangles (a, b, c) and (b, a, d) when d lies outside the
+    circumcircle of (a, b, c) by more than the predicates' error bound
+    (:func:`curvimesh.kernels.strict_delaunay_sides`).
+
+    >>> sq = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]
+    >>> strictly_delaunay(Mesh(sq, [[0, 1, 2], [0, 2, 3]])).tolist()  # co-circular
+    [True, False, True, True, True]
+    >>> kite = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 2.0]]
+    >>> strictly_delaunay(Mesh(kite, [[0, 1, 2], [0, 2, 3]])).tolist()
+    [True, True, True, True, True]
+    """
+    sides = np.empty((len(mesh.corners), 3), dtype=bool)
+    corners = np.ascontiguousarray(mesh.corners)
+    kernels.strict_delaunay_sides(mesh.points, corners, mesh.neighbours, sides)
+    ok = np.ones(len(mesh.edges), dtype=bool)
+    ok[mesh.tri_edges[~sides]] = False
+    return ok
+
+
+def _certified(new: Mesh, old: Mesh) -> bool:
+    """Whether ``new`` is the unique Delaunay triangulation of its points, knowing
+    that ``old`` is a triangulation.
+
+    Checked: every triangle counter-clockwise beyond the error bound and not flat
+    for :func:`delaunay` (area above 10 × its threshold); conforming (an edge in
+    at most two triangles, in opposite directions); the same boundary edges as
+    ``old``, turning left or straight at every boundary vertex (a convex
+    polygon, hence the convex hull of the points); the triangles' total area
+    that of the polygon (each interior edge having a triangle on either side,
+    the triangles then cover it exactly once); Euler's N − E + T = 1 with all N
+    points (none left out); every interior edge strictly locally Delaunay
+    (:func:`strictly_delaunay`). A triangulation of the convex hull whose edges
+    are all strictly locally Delaunay is the Delaunay triangulation, and the
+    only one.
+    """
+    pts, corners = new.points, new.corners
+    u = pts[corners[:, 1]] - pts[corners[:, 0]]
+    v = pts[corners[:, 2]] - pts[corners[:, 0]]
+    cross = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]  # twice the signed area
+    perm = np.abs(u[:, 0] * v[:, 1]) + np.abs(u[:, 1] * v[:, 0])
+    if not np.all(cross > kernels.PREDICATE_TOL * perm):
+        return False
+    if not 0.5 * cross.min() > 10 * _FLAT * _area_scale(pts):
+        return False
+    if not is_conforming(new):
+        return False
+    if not np.array_equal(new.edges[new.boundary_edges], old.edges[old.boundary_edges]):
+        return False
+    lines = new.boundary_lines  # the domain on their left
+    after = np.full(len(pts), -1, dtype=np.int64)
+    after[lines[:, 0]] = np.arange(len(lines))
+    nxt = after[lines[:, 1]]
+    if np.any(nxt < 0):
+        return False
+    a, b = pts[lines[:, 0]], pts[lines[:, 1]]
+    s, e = b - a, b[nxt] - a[nxt]
+    if np.any(s[:, 0] * e[:, 1] - s[:, 1] * e[:, 0] < 0):
+        return False
+    polygon = 0.5 * np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])  # shoelace
+    if not abs(0.5 * cross.sum() - polygon) <= 1e-9 * abs(polygon):
+        return False
+    if len(pts) - len(new.edges) + len(corners) != 1:
+        return False
+    return bool(strictly_delaunay(new).all())
+
+
+def delaunay_insert(mesh: Mesh, new: NDArray) -> Mesh | None:
+    """The Delaunay triangulation (as :func:`delaunay`) of the points of ``mesh``
+    followed by ``new`` ``(k, 2)``, updated locally, or None when it cannot be
+    certified (then call :func:`delaunay`).
+
+    ``mesh`` is the Delaunay triangulation of its points P (as :func:`delaunay`
+    makes it). The conflict set C, the triangles whose circumcircle strictly
+    holds a point of Q = ``new``, comes from walks and breadth-first searches
+    (:func:`curvimesh.kernels.delaunay_conflicts`); S is Q and the corners of
+    C. Qhull triangulates S, and the triangles of DT(S) inside the region R
+    that C covers replace C. Why: the triangles outside C keep empty
+    circumcircles, so they stay in DT(P ∪ Q); R is bounded by their edges (and
+    hull edges), which are edges of DT(S) too (empty circumcircles, corners in
+    S); DT(P ∪ Q) tiles R with triangles whose corners are in S (a point of P in
+    R is a corner of C) and whose circumcircles are empty of all points, hence
+    of S: they are the triangles of DT(S) in R (points in general position).
+    These are found without geometry: from the triangle of DT(S) on the inner
+    side of each boundary edge of R, through the edges of DT(S) that do not
+    bound R (:func:`curvimesh.kernels.flood_fill`).
+
+    The result is certified (:func:`_certified`) to be a triangulation of the
+    same convex region, using every point, whose every interior edge is
+    strictly locally Delaunay: the unique Delaunay triangulation, which
+    :func:`delaunay` computes too, in the same canonical order. Returns None
+    when a walk or an in-circle test is not decided beyond the error bound
+    (a new point outside the triangulation, on a circumcircle, or on a point),
+    when R's boundary is not in DT(S), or when the check fails (co-circular
+    points, where Qhull's choice among Delaunay triangulations cannot be
+    foreseen).
+    """
+    q = np.asarray(new, dtype=float).reshape(-1, 2)
+    if len(q) == 0:
+        return mesh
+    pts_old = np.asarray(mesh.points)
+    corners = np.ascontiguousarray(mesh.corners)
+    nbr = np.ascontiguousarray(mesh.neighbours)
+    n = len(pts_old)
+    conflict = np.zeros(len(corners), dtype=bool)
+    qs = np.ascontiguousarray(q[_walk_order(q)])
+    if kernels.delaunay_conflicts(pts_old, corners, nbr, qs, conflict) < 0:
+        return None
+    # an edge not strictly Delaunay (co-circular points) between two triangles that
+    # stay would fail the certificate: give up before Qhull
+    sides = np.empty((len(corners), 3), dtype=bool)
+    if kernels.strict_delaunay_sides(pts_old, corners, nbr, sides):
+        if (~sides & (nbr >= 0) & ~conflict[:, None] & ~conflict[nbr]).any():
+            return None
+    ids = np.concatenate([np.unique(corners[conflict]), n + np.arange(len(q))])
+    pts = np.concatenate([pts_old, q])
+    try:
+        local = _qhull_triangles(pts[ids])
+    except WorkError:
+        return None
+    # R's boundary: the sides of C's triangles towards a triangle outside C or none,
+    # directed with R on their left, in S's numbering
+    t, k = np.nonzero(~conflict[nbr] | (nbr < 0))
+    inner = conflict[t]
+    t, k = t[inner], k[inner]
+    ns = len(ids)
+    u = np.searchsorted(ids, corners[t, k])
+    v = np.searchsorted(ids, corners[t, (k + 1) % 3])
+    # the sides of DT(S) by their directed end pairs
+    key = (local * ns + np.roll(local, -1, axis=1)).ravel()  # side k: corners k → k + 1
+    order = np.argsort(key)
+    sorted_key = key[order]
+
+    def side_of(a: NDArray, b: NDArray) -> NDArray:
+        """Flat index (3 t + k) of the side a → b of DT(S), or −1."""
+        pos = np.minimum(np.searchsorted(sorted_key, a * ns + b), len(key) - 1)
+        return np.where(sorted_key[pos] == a * ns + b, order[pos], -1)
+
+    seed, twin = side_of(u, v), side_of(v, u)
+    if (seed < 0).any():
+        return None
+    wall = np.zeros(3 * len(local), dtype=bool)
+    wall[seed] = True
+    wall[twin[twin >= 0]] = True
+    inside = np.zeros(len(local), dtype=bool)
+    s_nbr = np.ascontiguousarray(Mesh(pts[ids], local).neighbours)
+    kernels.flood_fill(s_nbr, wall.reshape(-1, 3), seed // 3, inside)
+    if inside[twin[twin >= 0] // 3].any():  # R's boundary does not close it
+        return None
+    tris = np.concatenate([corners[~conflict], ids[local[inside]]])
+    out = Mesh(pts, canonical_triangles(tris), mesh.box)
+    return out if _certified(out, mesh) else None
 
 
 def _in_circle_metric(pa, pb, pc, pd, m: NDArray) -> NDArray:
@@ -129,7 +344,8 @@ def _metric_delaunay_compiled(field, cm, mesh: Mesh, max_rounds: int) -> Mesh:
     return Mesh(pts, corners, mesh.box)
 
 
-#: The last :func:`metric_delaunay_of` result of each field: (points, box, mesh).
+#: The last :func:`metric_delaunay_of` call of each field: (points, box, Euclidean
+#: Delaunay mesh, result).
 _LAST: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
@@ -141,18 +357,26 @@ def metric_delaunay_of(
 
     Gap filling (:func:`curvimesh.fill.fill_gaps`) ends on the triangulation of
     its final points, which the triangulation stage asks for again: the second
-    call returns the same mesh (both are pure functions of the points) without
-    a second Qhull run and Lawson flips.
+    call returns the same mesh without a second Qhull run and Lawson flips.
+    Between its rounds the points only grow (new ones appended): when the last
+    call's points are the first rows of ``points`` (same box), the Euclidean
+    Delaunay triangulation is updated by :func:`delaunay_insert` instead of
+    Qhull on every point, falling back to :func:`delaunay` when the update
+    cannot be certified. Both give the same array (the unique Delaunay
+    triangulation in canonical order), so the result stays a pure function of
+    the points.
     """
     pts = np.asarray(points, dtype=float)
     last = _LAST.get(field)
-    if (
-        last is not None
-        and last[1] == box
-        and last[0].shape == pts.shape
-        and np.array_equal(last[0], pts)
-    ):
-        return last[2]
-    mesh = metric_delaunay(field, delaunay(pts, box=box))
-    _LAST[field] = (pts.copy(), box, mesh)
+    euclid = None
+    if last is not None and last[1] == box:
+        old = last[0]
+        if old.shape == pts.shape and np.array_equal(old, pts):
+            return last[3]
+        if len(old) < len(pts) and np.array_equal(old, pts[: len(old)]):
+            euclid = delaunay_insert(last[2], pts[len(old) :])
+    if euclid is None:
+        euclid = delaunay(pts, box=box)
+    mesh = metric_delaunay(field, euclid)
+    _LAST[field] = (pts.copy(), box, euclid, mesh)
     return mesh
