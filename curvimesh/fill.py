@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from curvimesh.freenode import bounded_lengths
+from curvimesh.mesh import sorted_member, sorted_union
 from curvimesh.metric import MetricField
 from curvimesh.sampling import SamplingOptions, admissible_rows, conflict_free
 from curvimesh.spatial import PointIndex
@@ -86,7 +87,7 @@ def fill_gaps(
         e = mesh.edges
         n = len(pts)
         keys = e[:, 0] * n + e[:, 1]
-        fresh = ~np.isin(keys, done_keys)
+        fresh = ~sorted_member(done_keys, keys)
         e, keys = e[fresh], keys[fresh]
         if len(e) == 0:
             break
@@ -94,7 +95,7 @@ def fill_gaps(
         # edges it leaves long are searched
         length, mid = bounded_lengths(field, pts[e[:, 0]], pts[e[:, 1]], long=max_length)
         long = length > max_length
-        done_keys = np.union1d(done_keys, keys[~long])
+        done_keys = sorted_union(done_keys, keys[~long])
         # Delaunay refinement: a triangle whose empty circumcircle (in the metric)
         # has a radius above max_length / 2 can take its circumcentre.
         centre, radius = metric_circumcentres(field, pts, mesh.triangles)
@@ -110,12 +111,12 @@ def fill_gaps(
         edge = np.column_stack([e[long][by_length], np.full(int(long.sum()), -1)])
         source = np.concatenate([tri, edge])
         keys = _source_keys(source, n)
-        fresh = ~np.isin(keys, refused)
+        fresh = ~sorted_member(refused, keys)
         cand, keys = cand[fresh], keys[fresh]
         rows, regions = admissible_rows(field, index, cand, gap_opt)
         out = np.ones(len(cand), dtype=bool)
         out[rows] = False
-        refused = np.union1d(refused, keys[out])
+        refused = sorted_union(refused, keys[out])
         new = cand[rows][conflict_free(field, cand[rows], regions, gap_opt)]
         if len(new) == 0:
             break

@@ -41,6 +41,8 @@ __all__ = [
     "is_conforming",
     "p1_of",
     "signed_areas",
+    "sorted_member",
+    "sorted_union",
     "to_p2_straight",
 ]
 
@@ -413,6 +415,33 @@ def apply_flips(
     out[t1[chosen]] = np.column_stack([a[chosen], d[chosen], c[chosen]])
     out[t2[chosen]] = np.column_stack([d[chosen], b[chosen], c[chosen]])
     return out
+
+
+def sorted_member(sorted_keys: NDArray, keys: NDArray) -> NDArray[np.bool_]:
+    """Whether each of ``keys`` ``(k,)`` is in the ascending array ``sorted_keys``, by
+    binary search (np.isin sorts or hashes both arrays at every call).
+
+    >>> sorted_member(np.array([2, 5, 9]), np.array([9, 1, 5, 10])).tolist()
+    [True, False, True, False]
+    """
+    if len(sorted_keys) == 0:
+        return np.zeros(len(keys), dtype=bool)
+    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+    return sorted_keys[pos] == keys
+
+
+def sorted_union(sorted_keys: NDArray, keys: NDArray) -> NDArray:
+    """The distinct values of the ascending array ``sorted_keys`` and of ``keys``, ascending
+    (np.union1d, by a stable sort that merges the sorted run instead of hashing).
+
+    >>> sorted_union(np.array([2, 5, 9]), np.array([7, 2, 1])).tolist()
+    [1, 2, 5, 7, 9]
+    """
+    out = np.concatenate([sorted_keys, keys])
+    out.sort(kind="stable")
+    keep = np.ones(len(out), dtype=bool)
+    keep[1:] = out[1:] != out[:-1]
+    return out[keep]
 
 
 class EdgeStore:

@@ -67,20 +67,14 @@ from curvimesh.mesh import (
     flip_candidates,
     independent_flips,
     p1_of,
+    sorted_member,
+    sorted_union,
 )
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths_fast, metric_areas, quality_from
 
 #: Fractions of the optimal offset tried for a new edge's node, in order.
 BACKTRACK = (1.0, 0.5, 0.25, 0.125, 0.0)
-
-
-def _contains(sorted_keys: NDArray, keys: NDArray) -> NDArray[np.bool_]:
-    """Whether each of ``keys`` is in the ascending array ``sorted_keys``."""
-    if len(sorted_keys) == 0:
-        return np.zeros(len(keys), dtype=bool)
-    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
-    return sorted_keys[pos] == keys
 
 
 @dataclass(frozen=True)
@@ -236,7 +230,7 @@ def swap(
         q[redo] = quality_from(area[redo], elen[tri_edges[redo]])
         _, t1, t2, a, b, c, d = flip_candidates(cur)
         qk = t1 * m + t2
-        fresh = ~_contains(rejected, qk)
+        fresh = ~sorted_member(rejected, qk)
         a, b, c, d, t1, t2, qk = (v[fresh] for v in (a, b, c, d, t1, t2, qk))
         if len(a) == 0:
             break
@@ -255,7 +249,7 @@ def swap(
             )
         else:
             hopeless = bound <= q_old + min_gain
-        rejected = np.sort(np.concatenate([rejected, qk[hopeless]]))  # fresh: not in it
+        rejected = sorted_union(rejected, qk[hopeless])
         a, b, c, d, t1, t2, qk = (v[~hopeless] for v in (a, b, c, d, t1, t2, qk))
         if len(a) == 0:
             break
@@ -334,7 +328,7 @@ def swap(
             new_len = np.zeros(len(a))
             new_len[v] = l_cd
         good = np.flatnonzero(gain > min_gain)
-        rejected = np.sort(np.concatenate([rejected, qk[gain <= min_gain]]))
+        rejected = sorted_union(rejected, qk[gain <= min_gain])
         if good.size == 0:
             break
         # greedy non-conflicting selection by decreasing gain (ties: candidate order)
