@@ -1486,6 +1486,72 @@ def rtree_fill(mins, maxs, boxes, first, count, leaf, ids, xy, roots, offsets, h
 
 
 @njit(**_JIT)
+def _largest_size(g11, g12, g22):
+    """1 / sqrt(λ_min) of one tensor, λ_min as :func:`curvimesh.metric.smallest_eigenvalue`
+    (the same operations); 0 where it is not finite."""
+    top = 0.5 * (g11 + g22) + math.hypot(0.5 * (g11 - g22), g12)
+    h = 1.0 / math.sqrt((g11 * g22 - g12 * g12) / top)
+    return h if math.isfinite(h) else 0.0
+
+
+@njit(**_JIT)
+def _size_tensor(g11, g12, g22):
+    """(s11, s12, s22) = g⁻¹ of one tensor and whether it is a size tensor (finite,
+    positive definite), as :func:`curvimesh.sampling._size_tensors` and the test
+    of :func:`curvimesh.sampling.search_regions`."""
+    det = g11 * g22 - g12 * g12
+    s11, s12, s22 = g22 / det, -g12 / det, g11 / det
+    ok = (
+        math.isfinite(s11) and math.isfinite(s12) and math.isfinite(s22)
+        and s11 > 0.0 and s11 * s22 - s12 * s12 > 0.0
+    )  # fmt: skip
+    return s11, s12, s22, ok
+
+
+@_row_kernel
+def search_regions(fn, pts, box, samples, radius, reach, half, quad):
+    """:func:`curvimesh.sampling.search_regions` row by row (the same operations in the
+    same order, hence the same bits): the half-widths ``half`` ``(n, 2)`` and the
+    ellipses ``quad`` ``(n, 3)`` about points ``pts`` ``(n, 2)`` from the union of
+    the size tensors at each point and at ``samples`` ``(k, 2)`` × radius × its
+    largest size, clipped to ``box`` (xmin, ymin, xmax, ymax)."""
+    for i in prange(pts.shape[0]):
+        px, py = pts[i, 0], pts[i, 1]
+        g = fn(px, py)
+        h = _largest_size(g[0], g[1], g[2])
+        u11, u12, u22, have = _size_tensor(g[0], g[1], g[2])
+        largest = 0.0
+        for k in range(samples.shape[0]):
+            qx = min(max(px + samples[k, 0] * (radius * h), box[0]), box[2])
+            qy = min(max(py + samples[k, 1] * (radius * h), box[1]), box[3])
+            gk = fn(qx, qy)
+            largest = max(largest, _largest_size(gk[0], gk[1], gk[2]))
+            s11, s12, s22, ok = _size_tensor(gk[0], gk[1], gk[2])
+            if ok:
+                if have:  # the union of size tensors: their intersection as metrics
+                    u11, u12, u22 = intersect(u11, u12, u22, s11, s12, s22)
+                else:  # the first defined one (the numpy twin intersects it with itself)
+                    u11, u12, u22, have = s11, s12, s22, True
+                    u11, u12, u22 = intersect(u11, u12, u22, s11, s12, s22)
+        hw = reach * max(largest, h)
+        det = u11 * u22 - u12 * u12
+        scale = det * reach * reach
+        q11, q12, q22 = u22 / scale, -u12 / scale, u11 / scale
+        r1, r2 = reach * math.sqrt(u11), reach * math.sqrt(u22)
+        finite = (
+            math.isfinite(q11) and math.isfinite(q12) and math.isfinite(q22)
+            and math.isfinite(r1) and math.isfinite(r2)
+        )  # fmt: skip
+        if have and finite and det > 0.0:
+            quad[i, 0], quad[i, 1], quad[i, 2] = q11, q12, q22
+            half[i, 0], half[i, 1] = min(r1, hw), min(r2, hw)
+        else:  # no defined sample: the square of the local size
+            iso = 1.0 / (hw * hw)
+            quad[i, 0], quad[i, 1], quad[i, 2] = iso, 0.0, iso
+            half[i, 0], half[i, 1] = hw, hw
+
+
+@njit(**_JIT)
 def _in_region(px, py, cx, cy, q11, q12, q22):
     """Whether (px, py) lies in the ellipse (x − c)ᵀ Q (x − c) ≤ 1 (boundary included)."""
     dx = px - cx

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from curvimesh import kernels
 from curvimesh.boundary import BoundaryMesh
 from curvimesh.freenode import any_closer_in_index, parabola_verdicts, shortest_parabola
 from curvimesh.geodesic import (
@@ -177,6 +178,15 @@ def search_regions(field: MetricField, pts: NDArray, radius: float) -> SearchReg
     """
     pts = np.asarray(pts, dtype=float).reshape(-1, 2)
     n = len(pts)
+    reach = SAMPLED_GROWTH * radius
+    cm = field.kernel
+    if cm is not None:  # the same operations, compiled
+        half, quad = np.empty((n, 2)), np.empty((n, 3))
+        box = np.array(field.box, dtype=float)
+        kernels.search_regions(
+            cm.g, np.ascontiguousarray(pts), box, _BOX_SAMPLES, float(radius), reach, half, quad
+        )
+        return SearchRegions(half, quad)
     g0 = field.tensor(pts, check=False)
     with np.errstate(invalid="ignore", divide="ignore"):
         h = 1.0 / np.sqrt(smallest_eigenvalue(g0))
@@ -192,7 +202,6 @@ def search_regions(field: MetricField, pts: NDArray, radius: float) -> SearchReg
     with np.errstate(invalid="ignore", divide="ignore"):
         size = 1.0 / np.sqrt(smallest_eigenvalue(g[:, 1:].reshape(-1, 2, 2)).reshape(n, -1))
     size[~np.isfinite(size)] = 0.0
-    reach = SAMPLED_GROWTH * radius
     hw = reach * np.maximum(size.max(axis=1), h)
     s11, s12, s22 = _size_tensors(g)
     ok = np.isfinite(s11) & np.isfinite(s12) & np.isfinite(s22) & (s11 > 0)

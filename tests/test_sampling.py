@@ -163,3 +163,31 @@ def test_search_regions_hold_every_point_closer_than_min_dist(name):
     det = regions.quad[:, 0] * regions.quad[:, 2] - regions.quad[:, 1] ** 2
     ratio = np.median(np.pi / np.sqrt(det) / (4 * square**2))
     assert ratio <= math.pi / 4 + 1e-9
+
+
+class _TensorsOnly:
+    """A field's tensors and box without its compiled code: the numpy paths."""
+
+    kernel = None
+
+    def __init__(self, field) -> None:
+        self.field = field
+
+    def __getattr__(self, name):
+        return getattr(self.field, name)
+
+
+@pytest.mark.parametrize("name", ["toy", "three_toys", "front", "concentric", "circular_layer"])
+def test_compiled_search_regions_are_the_numpy_ones_bit_for_bit(name):
+    # the kernel repeats the numpy path's operations on the same tensors (the union
+    # of the size tensors sampled about each point, clipped to the box)
+    fld = load_metric(METRICS / f"{name}.yaml")
+    assert fld.kernel is not None
+    rng = np.random.default_rng(12)
+    xmin, ymin, xmax, ymax = fld.box
+    pts = rng.uniform([xmin, ymin], [xmax, ymax], (4000, 2))
+    pts[:100] = rng.uniform([xmin, ymin], [xmin + 0.01, ymax], (100, 2))  # at a side
+    fast = sampling.search_regions(fld, pts, 1.4)
+    ref = sampling.search_regions(_TensorsOnly(fld), pts, 1.4)
+    np.testing.assert_array_equal(fast.halfwidth, ref.halfwidth)
+    np.testing.assert_array_equal(fast.quad, ref.quad)
