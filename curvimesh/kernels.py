@@ -855,6 +855,15 @@ def classify_parabolas(fn, x0, x1, grid, t, w, tol, max_iter, short, long, verdi
 
 
 @njit(**_JIT)
+def _probe_sup(fn, ax, ay, dx, dy, nx, ny, tk, sk):
+    """νᵀ g⁻¹ ν at the probe a + t d + s d×e₃ (ν = d / |d| = (nx, ny)), the squared
+    size along ν there; NaN where g is undefined."""
+    g = fn(ax + tk * dx + sk * dy, ay + tk * dy - sk * dx)
+    det = g[0] * g[2] - g[1] ** 2
+    return (g[2] * nx**2 - 2 * g[1] * nx * ny + g[0] * ny**2) / det
+
+
+@njit(**_JIT)
 def _chord_bound(fn, ax, ay, bx, by, probes):
     """|d| / max over the probes (t, s) of sqrt(νᵀ g⁻¹ ν) at a + t d + s d×e₃, d = b − a,
     ν = d / |d| (:func:`curvimesh.geodesic.chord_lower_bound`); NaN if g is undefined
@@ -866,11 +875,7 @@ def _chord_bound(fn, ax, ay, bx, by, probes):
     ny = dy / chord
     worst = -math.inf
     for k in range(probes.shape[0]):
-        tk = probes[k, 0]
-        sk = probes[k, 1]
-        g = fn(ax + tk * dx + sk * dy, ay + tk * dy - sk * dx)
-        det = g[0] * g[2] - g[1] ** 2
-        sup = (g[2] * nx**2 - 2 * g[1] * nx * ny + g[0] * ny**2) / det
+        sup = _probe_sup(fn, ax, ay, dx, dy, nx, ny, probes[k, 0], probes[k, 1])
         if math.isnan(sup):
             return math.nan
         if sup > worst:
@@ -897,11 +902,7 @@ def _chord_bound_reaches(fn, ax, ay, bx, by, probes, target):
     ny = dy / chord
     limit = (chord / target) ** 2
     for k in range(probes.shape[0]):
-        tk = probes[k, 0]
-        sk = probes[k, 1]
-        g = fn(ax + tk * dx + sk * dy, ay + tk * dy - sk * dx)
-        det = g[0] * g[2] - g[1] ** 2
-        sup = (g[2] * nx**2 - 2 * g[1] * nx * ny + g[0] * ny**2) / det
+        sup = _probe_sup(fn, ax, ay, dx, dy, nx, ny, probes[k, 0], probes[k, 1])
         if not sup <= limit:  # above, or NaN
             return False
     return True
