@@ -181,8 +181,9 @@ def three_toys():
     return load_metric(METRICS / "three_toys.yaml")
 
 
-def test_metric_delaunay_of_inserts_and_equals_a_fresh_triangulation(three_toys, monkeypatch):
-    fld = three_toys
+@pytest.fixture
+def insertions(monkeypatch):
+    """Whether each :func:`delaunay_insert` call of the test was certified, in order."""
     seen = []
 
     def spy(mesh, new):
@@ -191,6 +192,11 @@ def test_metric_delaunay_of_inserts_and_equals_a_fresh_triangulation(three_toys,
         return out
 
     monkeypatch.setattr(triangulate, "delaunay_insert", spy)
+    return seen
+
+
+def test_metric_delaunay_of_inserts_and_equals_a_fresh_triangulation(three_toys, insertions):
+    fld, seen = three_toys, insertions
     x0, y0, x1, y1 = fld.box
     rng = np.random.default_rng(9)
     pts = np.concatenate(
@@ -206,16 +212,8 @@ def test_metric_delaunay_of_inserts_and_equals_a_fresh_triangulation(three_toys,
     assert metric_delaunay_of(fld, pts.copy(), fld.box) is got  # remembered
 
 
-def test_metric_delaunay_of_falls_back_on_a_lattice(three_toys, monkeypatch):
-    fld = three_toys
-    seen = []
-
-    def spy(mesh, new):
-        out = delaunay_insert(mesh, new)
-        seen.append(out is not None)
-        return out
-
-    monkeypatch.setattr(triangulate, "delaunay_insert", spy)
+def test_metric_delaunay_of_falls_back_on_a_lattice(three_toys, insertions):
+    fld, seen = three_toys, insertions
     x0, y0, x1, y1 = fld.box
     gx, gy = np.meshgrid(np.linspace(x0, x1, 21), np.linspace(y0, y1, 21))
     pts = np.column_stack([gx.ravel(), gy.ravel()])
@@ -228,7 +226,7 @@ def test_metric_delaunay_of_falls_back_on_a_lattice(three_toys, monkeypatch):
 
 
 @pytest.mark.parametrize("name", ["three_toys_coarse", "constant_aniso"])
-def test_gap_filling_gives_the_same_points_without_insertion(name, monkeypatch):
+def test_gap_filling_gives_the_same_points_without_insertion(name, monkeypatch, insertions):
     from curvimesh.boundary import discretize_box
     from curvimesh.sampling import SamplingOptions, sample_points
 
@@ -236,16 +234,8 @@ def test_gap_filling_gives_the_same_points_without_insertion(name, monkeypatch):
     opt = SamplingOptions()
     boundary = discretize_box(fld, target=opt.spacing, min_dist=opt.min_dist)
     pts = sample_points(fld, boundary, opt, seed=0)
-    seen = []
-
-    def spy(mesh, new):
-        out = delaunay_insert(mesh, new)
-        seen.append(out is not None)
-        return out
-
-    monkeypatch.setattr(triangulate, "delaunay_insert", spy)
     with_insertion = fill_gaps(fld, pts, opt)
-    assert any(seen)
+    assert any(insertions)
     monkeypatch.setattr(triangulate, "delaunay_insert", lambda mesh, new: None)
     triangulate._LAST.pop(fld, None)
     np.testing.assert_array_equal(fill_gaps(fld, pts, opt), with_insertion)
