@@ -217,7 +217,8 @@ def nested_pairs(draw) -> tuple[np.ndarray, np.ndarray, bool]:
 def test_nested_metrics_intersect_to_the_larger_bit_for_bit(pair):
     # M2 = M1 + P contains M1: the intersection is M2 itself, its derivatives M2's;
     # where P has rank 1, M2 − M1 is singular and rounding may call the pair
-    # crossing (s₋ = 1 within rounding): then M2 to rounding
+    # crossing (s₋ = 1 within rounding): then M2 to rounding, amplified by the
+    # conditioning |M2| / |P| of s₊ − 1 (a draw gave 2.8e-12 of 2.4, |P| 1e-4 of it)
     a, b, rank2 = pair
     m2_over, _ = nested(*(tuple(np.array([v]) for v in m[:3]) for m in (a, b)))
     assert m2_over[0] or not rank2
@@ -229,7 +230,9 @@ def test_nested_metrics_intersect_to_the_larger_bit_for_bit(pair):
             assert np.array_equal(kernels.intersect_d(tuple(x), tuple(y)), b)
             assert [v[0] for v in numpy] == list(b[:3])
         else:
-            assert np.abs(np.array(got) - b[:3]).max() <= 1e-12 * np.abs(b[:3]).max()
+            size, gap = np.abs(b[:3]).max(), np.abs(b[:3] - a[:3]).max()
+            tol = 1e-12 * size + 16 * np.finfo(float).eps * size * size / gap
+            assert np.abs(np.array(got) - b[:3]).max() <= tol
 
 
 @given(spd_pairs(smooth=True))
