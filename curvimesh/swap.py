@@ -228,10 +228,10 @@ def swap(
             field, _nodes(pts, tris[redo], emid[tri_edges[redo]]), order=area_order
         )
         q[redo] = quality_from(area[redo], elen[tri_edges[redo]])
-        _, t1, t2, a, b, c, d = flip_candidates(cur)
+        e_ab, t1, t2, a, b, c, d = flip_candidates(cur)
         qk = t1 * m + t2
         fresh = ~sorted_member(rejected, qk)
-        a, b, c, d, t1, t2, qk = (v[fresh] for v in (a, b, c, d, t1, t2, qk))
+        e_ab, a, b, c, d, t1, t2, qk = (v[fresh] for v in (e_ab, a, b, c, d, t1, t2, qk))
         if len(a) == 0:
             break
         # candidates no new edge could make worth it, before searching their parabolas
@@ -243,14 +243,14 @@ def swap(
             # edge in the range (no case 2) a pair that cannot gain quality has
             # neither case 1 nor case 3
             floor = max(min_quality, float(q.min()))
-            in_range = out_of_range(stored_length(a, b), length_range) <= min_gain
+            in_range = out_of_range(elen[e_ab], length_range) <= min_gain
             hopeless = (np.minimum(bound, floor) < np.minimum(q_old, floor)) | (
                 in_range & (bound <= q_old + min_gain)
             )
         else:
             hopeless = bound <= q_old + min_gain
         rejected = sorted_union(rejected, qk[hopeless])
-        a, b, c, d, t1, t2, qk = (v[~hopeless] for v in (a, b, c, d, t1, t2, qk))
+        e_ab, a, b, c, d, t1, t2, qk = (v[~hopeless] for v in (e_ab, a, b, c, d, t1, t2, qk))
         if len(a) == 0:
             break
         # the new edge's optimal node (computed once per pair, kept in the store)
@@ -312,7 +312,7 @@ def swap(
             )
             q_new, q_old = np.minimum(q1, q2), np.minimum(q[t1[v]], q[t2[v]])
             gain[v] = q_new - q_old
-            l_ab = stored_length(a[v], b[v])
+            l_ab = elen[e_ab[v]]
             if length_rule:
                 gain[v] = length_rule_gain(
                     q_old,
@@ -332,7 +332,7 @@ def swap(
         if good.size == 0:
             break
         # greedy non-conflicting selection by decreasing gain (ties: candidate order)
-        ch = good[independent_flips(t1[good], t2[good], gain[good], len(tris))]
+        ch = good[independent_flips(t1[good], t2[good], gain[good], m)]
         tris = apply_flips(tris, ch, t1, t2, a, b, c, d)
         flipped = np.concatenate([t1[ch], t2[ch]])
         changed = np.zeros(m, dtype=bool)
