@@ -1528,12 +1528,11 @@ def search_regions(fn, pts, box, samples, radius, reach, half, quad):
             gk = fn(qx, qy)
             largest = max(largest, _largest_size(gk[0], gk[1], gk[2]))
             s11, s12, s22, ok = _size_tensor(gk[0], gk[1], gk[2])
-            if ok:
-                if have:  # the union of size tensors: their intersection as metrics
-                    u11, u12, u22 = intersect(u11, u12, u22, s11, s12, s22)
-                else:  # the first defined one (the numpy twin intersects it with itself)
-                    u11, u12, u22, have = s11, s12, s22, True
-                    u11, u12, u22 = intersect(u11, u12, u22, s11, s12, s22)
+            if ok and have:  # the union of size tensors: their intersection as metrics
+                u11, u12, u22 = intersect(u11, u12, u22, s11, s12, s22)
+            elif ok:  # the first defined one (the numpy twin intersects it with itself,
+                # which gives it back: nested, the larger whole)
+                u11, u12, u22, have = s11, s12, s22, True
         hw = reach * max(largest, h)
         det = u11 * u22 - u12 * u12
         scale = det * reach * reach
