@@ -50,6 +50,7 @@ class AdaptOptions:
     sampling: SamplingOptions = field(default_factory=SamplingOptions)
     max_vertices: int = MAX_VERTICES
     max_swap_rounds: int = 200
+    hexagons: bool = True
     fill: bool = True
     straight: bool = False
     relocate: bool = True
@@ -65,9 +66,10 @@ class AdaptOptions:
 
 
 #: The stages beyond the paper's method, by their :class:`AdaptOptions` field, in
-#: pipeline order: the first two build and triangulate the point cloud, the others
+#: pipeline order: the first three build and triangulate the point cloud, the others
 #: run in the swap stage.
 STAGES = (
+    "hexagons",
     "fill",
     "relocate",
     "intrinsic",
@@ -102,10 +104,11 @@ def check_size(fld: MetricField, max_vertices: int) -> float:
 def sample(fld: MetricField, options: AdaptOptions | None = None) -> Mesh:
     """Stage 1: boundary discretisation, Algorithm 1 and gap filling; a point cloud on the box."""
     opt = options or AdaptOptions()
-    boundary = discretize_box(fld, target=opt.sampling.spacing, min_dist=opt.sampling.min_dist)
-    pts = sample_points(fld, boundary, opt.sampling, seed=opt.seed)
+    sopt = replace(opt.sampling, hexagons=opt.hexagons)
+    boundary = discretize_box(fld, target=sopt.step, min_dist=sopt.min_dist)
+    pts = sample_points(fld, boundary, sopt, seed=opt.seed)
     if opt.fill:
-        pts = fill_gaps(fld, pts, opt.sampling)
+        pts = fill_gaps(fld, pts, sopt)
     return Mesh(pts, np.zeros((0, 3), dtype=np.int64), fld.box)
 
 

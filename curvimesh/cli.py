@@ -167,6 +167,10 @@ def _options(
 
 #: The help of each stage's flag --no-FIELD (FIELD its AdaptOptions field).
 STAGE_HELP = {
+    "hexagons": (
+        "No hexagonal lattice: every point shoots along the metric's principal directions "
+        "(the paper's Algorithm 1)."
+    ),
     "fill": "No gap filling after Algorithm 1.",
     "relocate": "No vertex relocation.",
     "intrinsic": (
@@ -178,7 +182,7 @@ STAGE_HELP = {
     "recurve": "No re-curving of edge nodes towards their shortest parabolas.",
     "length_swaps": "No swaps for edge lengths (swaps for quality (4) only).",
     "shift": (
-        "No vertex shifts at the edges left longer than 1.4 and at triangles of quality < 0.3."
+        "No vertex shifts at the edges left longer than 1.4 and at triangles of quality < 0.8."
     ),
     "remove": (
         "No vertex removals at the triangles left below quality 0.3 and at the edges "
@@ -196,7 +200,7 @@ STAGE_HELP = {
 STAGES = tuple((name, STAGE_HELP[name]) for name in pipeline.STAGES)
 
 #: The stages run by the swap stage (``curvimesh swap``).
-SWAP_STAGES = tuple(name for name, _ in STAGES[2:])
+SWAP_STAGES = tuple(name for name, _ in STAGES[3:])
 
 
 def stage_flags(*names: str) -> Callable[[Callable], Callable]:
@@ -340,12 +344,12 @@ def geodesic(ctx: Context, metric_path, start, end, angle, length) -> None:
 @output_option
 @seed_option
 @max_vertices_option
-@click.option("--no-fill", is_flag=True, help="No gap filling after Algorithm 1.")
+@stage_flags("hexagons", "fill")
 @command
-def sample(ctx: Context, metric_path, output, fmt, seed, max_vertices, no_fill) -> None:
+def sample(ctx: Context, metric_path, output, fmt, seed, max_vertices, stages) -> None:
     """Stage 1: sample points (Algorithm 1, then gap filling); writes nodes with vertex cells."""
     fld = load_metric(metric_path)
-    opt = _options(seed=seed, max_vertices=max_vertices, fill=not no_fill)
+    opt = _options(seed=seed, max_vertices=max_vertices, **stages)
     pipeline.check_size(fld, max_vertices)
     cloud = pipeline.sample(fld, opt)
     ctx.progress(f"sample: {len(cloud.points)} points")
@@ -452,16 +456,17 @@ def adapt(
 ) -> None:
     """All stages: sample | triangulate | curve | swap, in one process.
 
-    The stages beyond the paper's method (gap filling, vertex relocation,
+    The stages beyond the paper's method (a hexagonal lattice of sampled
+    points where the metric's directions turn slowly, gap filling, vertex relocation,
     intrinsic flips where the metric's directions turn fast, vertex insertion,
     edge splits, re-curving, swaps for lengths, vertex shifts, vertex removals,
     repeated passes of these where defects remain, and for an interpolation metric
-    edge nodes fitted to its function) run by default; --no-fill, --no-relocate,
-    --no-intrinsic, --no-insert, --no-split, --no-recurve, --no-length-swaps,
-    --no-shift, --no-remove, --no-repeat and --no-fit turn them off, so that the
-    paper's method alone is `--no-fill --no-relocate --no-intrinsic --no-insert
-    --no-split --no-recurve --no-length-swaps --no-shift --no-remove --no-repeat
-    --no-fit`.
+    edge nodes fitted to its function) run by default; --no-hexagons, --no-fill,
+    --no-relocate, --no-intrinsic, --no-insert, --no-split, --no-recurve,
+    --no-length-swaps, --no-shift, --no-remove, --no-repeat and --no-fit turn them
+    off, so that the paper's method alone is `--no-hexagons --no-fill --no-relocate
+    --no-intrinsic --no-insert --no-split --no-recurve --no-length-swaps --no-shift
+    --no-remove --no-repeat --no-fit`.
     """
     fld = load_metric(metric_path)
     _warn_turn(ctx, fld)

@@ -2,7 +2,8 @@
 
 Starting from the boundary vertices, every point of the current front shoots
 four geodesics along ±v₁, ±v₂, the eigenvectors of g at the point (paper
-section 3). A tentative end point is kept when it lies in the box, far enough
+section 3), or, by default where the metric's frame turns slowly, three along
+a hexagonal lattice (below). A tentative end point is kept when it lies in the box, far enough
 from the boundary, and not too close to any kept point, closeness being
 measured by the length of the shortest parabola (equation (3)) and the
 candidates found through an R-tree. The kept points form the next front.
@@ -27,6 +28,26 @@ Where the metric's frame turns fast, the parabolas measured, here and in the
 closeness test, have a free middle node (:mod:`curvimesh.freenode`): the
 symmetric parabola of a unit step along a tightly bent front is several
 units long, and the shot would be cut to a third and refused.
+
+Hexagons (beyond the paper; ``SamplingOptions.hexagons``). Where the metric
+is nearly constant over an edge, points shot along both principal directions
+make a grid of squares in the metric, which Delaunay cuts into right
+triangles of quality (4) √3/2 ≈ 0.866 — the more of the mesh the finer the
+metric, so that the mean quality fell from 0.955 at 10³ vertices to 0.922 at
+10⁶ (toy). A point reached by a geodesic with velocity a instead shoots at
+0° and ±60° from a, the angles measured in g (:func:`turned_directions`), and
+a boundary vertex at 60° and 120° from its side: in a constant metric these
+are the nodes of the lattice of equilateral triangles of side ``spacing``
+that grows from the boundary, each new row half a step along. The shots at
+±120° would land on the parent's other children and are not made. Where the
+principal directions turn by :data:`HEX_MAX_TURN` or more per unit length
+(:func:`curvimesh.metric.frame_turn`: curved fronts, circles about a
+singular centre), at the point or one unit ahead of it along a shot, a
+lattice carried along geodesics shears against the layers of the metric,
+and the points there shoot along the principal directions as above (the
+turn is counted where the anisotropy is 10 or more; below it, a turning frame
+shapes nothing and the hexagons are used); a point of either kind may be the
+parent of the other.
 """
 
 from __future__ import annotations
@@ -47,7 +68,7 @@ from curvimesh.geodesic import (
     shoot,
     unit_velocity,
 )
-from curvimesh.metric import MetricField, smallest_eigenvalue
+from curvimesh.metric import MetricField, frame_turn, smallest_eigenvalue
 from curvimesh.spatial import PointIndex, pairs_within_boxes
 from curvimesh.tensors import intersect_components
 
@@ -64,19 +85,25 @@ class SamplingOptions:
     ``search``: Euclidean search radius as a multiple of ``min_dist`` times
     the largest local size; ``max_points`` bounds the run.
 
-    The spacing is 0.98, not 1: points shot along both principal directions
-    make, where the metric varies slowly, a grid of squares of side
-    ``spacing`` (unit squares in the metric), whose diagonals, √2 × spacing,
-    must be in the unit range [0.7, 1.4]; with a spacing of 1 they are 1.414,
-    just too long, and gap filling would put a point in every square (on a
-    wall boundary layer, 1.35 times the ideal triangle count instead of 0.95).
+    ``hexagons`` (default) shoots along a hexagonal lattice where the frame
+    turns slowly (module docstring), else along the principal directions
+    only (the paper's Algorithm 1). ``spacing`` (None: :attr:`step`'s
+    default) is 1 with hexagons, whose edges are all ``spacing`` long where
+    the metric is constant, and 0.98 without: points shot along both
+    principal directions make, where the metric varies slowly, a grid of
+    squares of side ``spacing`` (unit squares in the metric), whose
+    diagonals, √2 × spacing, must be in the unit range [0.7, 1.4]; with a
+    spacing of 1 they are 1.414, just too long, and gap filling would put a
+    point in every square (on a wall boundary layer, 1.35 times the ideal
+    triangle count instead of 0.95).
     A gap point must be ``fill_dist`` = 0.75 from the others, so that only
     gaps of 1.5 or more (the longest edge we accept) are filled: a point in
     a gap between 1.4 and 1.5 would make edges of 0.7 to 0.75 where moving
     the vertices (:mod:`curvimesh.smooth`) does better.
     """
 
-    spacing: float = 0.98
+    spacing: float | None = None
+    hexagons: bool = True
     min_dist: float = 0.7
     fill_dist: float = 0.75
     boundary_dist: float = 0.6
@@ -84,6 +111,55 @@ class SamplingOptions:
     length_fix: bool = True
     shoot_tol: float = 1e-6
     max_points: int = 2_000_000
+
+    @property
+    def step(self) -> float:
+        """The metric length between a point and its child: ``spacing``, or 1 with
+        hexagons and 0.98 without (class docstring)."""
+        if self.spacing is not None:
+            return self.spacing
+        return 1.0 if self.hexagons else 0.98
+
+
+#: Turn of the principal directions per unit length (radians, 10°) from which the
+#: front shoots along them instead of along hexagons, at the point or one unit ahead
+#: of it (module docstring). Measured on the 27 metrics of bench/robustness at
+#: three seeds: hexagons everywhere left edges of 1.6 – 3.5 beside the singular
+#: centres of concentric fields and along tightly curved fronts (70 of 81 meshes
+#: met the targets; the paper's directions everywhere: 75 with the quality pass at
+#: 0.3, 78 with it at 0.8); hexagons where the turn is below 20° at the point 78,
+#: but edges of 4.6 left at the tips of metrics/hard/tight_front.yaml (81° per
+#: unit length there), and of 1.5 – 1.8 with a threshold of 5 – 15° at the point
+#: alone; below 10° at the point and one unit ahead: 78, and the tight front
+#: within 0.7 – 1.4 (with 20° and the look ahead, 3.07).
+HEX_MAX_TURN = math.radians(10.0)
+
+#: The unit tangent of each side of the box (bottom, right, top, left), counter-clockwise.
+_SIDE_TANGENTS = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+
+#: The hexagonal lattice's shots, in multiples of 60° from the reference: from a
+#: boundary vertex (reference: its side, the domain on the left), from a point
+#: reached by a shot (reference: its arrival velocity).
+BOUNDARY_TURNS = (1, 2)
+FRONT_TURNS = (-1, 0, 1)
+
+
+def turned_directions(g: NDArray, ref: NDArray, turns: tuple[int, ...]) -> NDArray:
+    """Directions ``(n, k, 2)`` at the angles 60° × ``turns`` from ``ref`` ``(n, 2)``,
+    angles measured in the metric ``g`` ``(n, 2, 2)`` (counter-clockwise), unit in it.
+
+    With u = ref / |ref|_g and w = J g u / |J g u|_g (J the rotation by 90°),
+    uᵀ g w = (g u) · J (g u) = 0 and det(u, w) = uᵀ g u > 0: (u, w) is a
+    positively oriented orthonormal frame of g, and the direction at angle θ
+    is cos θ u + sin θ w.
+    """
+    u = ref / np.sqrt(np.einsum("ni,nij,nj->n", ref, g, ref))[:, None]
+    gu = np.einsum("nij,nj->ni", g, u)
+    w = np.stack([-gu[:, 1], gu[:, 0]], axis=1)
+    w /= np.sqrt(np.einsum("ni,nij,nj->n", w, g, w))[:, None]
+    theta = np.radians(60.0 * np.asarray(turns, dtype=float))
+    cos, sin = np.cos(theta)[None, :, None], np.sin(theta)[None, :, None]
+    return cos * u[:, None, :] + sin * w[:, None, :]
 
 
 def principal_directions(g: NDArray) -> NDArray:
@@ -445,17 +521,16 @@ def sample_points(
     index.add(boundary.vertices)
     front = boundary.vertices
     arrival = np.full(front.shape, np.nan)  # the velocity each point was reached with
+    ref, turns = _SIDE_TANGENTS[boundary.sides], BOUNDARY_TURNS  # the hexagons' references
     while len(front) and index.size < opt.max_points:
-        g = field.tensor(front)
-        dirs = principal_directions(g)
-        ahead = ~backward(g, dirs, arrival).ravel()
-        dirs = dirs.reshape(-1, 2)[ahead]
-        starts = np.repeat(front, 4, axis=0)[ahead]
-        shot = shoot(field, starts, dirs, opt.spacing, tol=opt.shoot_tol)
+        dirs, shots = front_directions(field, front, arrival, ref, turns, opt.hexagons)
+        dirs = dirs.reshape(-1, 2)[shots.ravel()]
+        starts = np.repeat(front, 4, axis=0)[shots.ravel()]
+        shot = shoot(field, starts, dirs, opt.step, tol=opt.shoot_tol)
         ok = shot.ok
         ends = shot.end[ok]
         if opt.length_fix and ok.any():
-            ends = shortened_ends(field, starts[ok], dirs[ok], shot, ok, opt.spacing)
+            ends = shortened_ends(field, starts[ok], dirs[ok], shot, ok, opt.step)
         kept = accepted_rows(field, index, ends, opt)
         if len(kept) == 0:
             break
@@ -464,4 +539,47 @@ def sample_points(
             order = rng.permutation(len(front))
             front, arrival = front[order], arrival[order]
         index.add(front)
+        ref, turns = arrival, FRONT_TURNS
     return index.points.copy()
+
+
+def front_directions(
+    field: MetricField,
+    front: NDArray,
+    arrival: NDArray,
+    ref: NDArray,
+    turns: tuple[int, ...],
+    hexagons: bool,
+) -> tuple[NDArray, NDArray]:
+    """The directions ``(n, 4, 2)`` the points ``front`` ``(n, 2)`` shoot along and which
+    of them are shot ``(n, 4)``: ±v₁, ±v₂ but the way back (:func:`backward`; ``arrival``
+    the velocities that reached the points, NaN for none), or with ``hexagons``, where
+    the frame turns by less than :data:`HEX_MAX_TURN` per unit length, the first
+    ``len(turns)`` slots at 60° × ``turns`` from ``ref`` (:func:`turned_directions`)."""
+    if hexagons:
+        g, dg = field.evaluate(front, derivatives=True)
+    else:
+        g = field.tensor(front)
+    dirs = principal_directions(g)
+    shots = ~backward(g, dirs, arrival)
+    if hexagons:
+        hexa = frame_turn(g, dg) < HEX_MAX_TURN
+        if hexa.any():
+            rows = np.flatnonzero(hexa)
+            hd = turned_directions(g[rows], ref[rows], turns)
+            slow = turns_slowly_ahead(field, front[rows], hd)
+            hexa[rows[~slow]] = False
+            dirs[hexa, : len(turns)] = hd[slow]
+            shots[hexa] = np.arange(4) < len(turns)
+    return dirs, shots
+
+
+def turns_slowly_ahead(field: MetricField, starts: NDArray, dirs: NDArray) -> NDArray:
+    """Whether the frame turns by less than :data:`HEX_MAX_TURN` per unit length at the
+    points ``starts + dirs`` ``(n, k, 2)`` one unit ahead of ``starts`` ``(n, 2)`` along
+    all k directions ``dirs`` (unit in the metric at the start, so a unit step where the
+    metric is constant; outside the box or where the metric is undefined the turn is
+    taken as zero), ``(n,)``."""
+    ahead = (starts[:, None, :] + dirs).reshape(-1, 2)
+    g, dg = field.evaluate(ahead, derivatives=True, check=False)
+    return (frame_turn(g, dg) < HEX_MAX_TURN).reshape(dirs.shape[:2]).all(axis=1)

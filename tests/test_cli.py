@@ -180,6 +180,7 @@ def test_check_metric_prints_the_ideal_count():
 @pytest.mark.parametrize(
     "flags",
     [
+        ("--no-hexagons",),
         ("--no-insert",),
         ("--no-recurve",),
         ("--no-length-swaps",),
@@ -187,6 +188,7 @@ def test_check_metric_prints_the_ideal_count():
         ("--no-remove",),
         ("--no-repeat",),
         (
+            "--no-hexagons",
             "--no-fill",
             "--no-relocate",
             "--no-insert",

@@ -27,9 +27,9 @@ METRICS = Path(__file__).resolve().parents[1] / "metrics"
 TIGHT = METRICS / "hard" / "tight_front.yaml"
 
 
-def curved(fld):
+def curved(fld, **stages):
     """The mesh the swap stage starts from: sampled, triangulated, curved."""
-    opt = pipeline.AdaptOptions()
+    opt = pipeline.AdaptOptions(**stages)
     return pipeline.curve(fld, pipeline.triangulate(pipeline.sample(fld, opt), fld, opt), opt)
 
 
@@ -88,8 +88,11 @@ def test_nothing_changes_where_the_frame_turns_slowly():
 
 
 def test_the_curved_tight_front_is_untangled_and_stays_valid():
+    # sampled along the principal directions everywhere (the paper's Algorithm 1): with
+    # the hexagons away from the tips the curved mesh has edges up to 9.2 and the
+    # flips leave 2.8, which the later stages take below 1.4 (next test)
     fld = load_metric(TIGHT)
-    mesh = curved(fld)
+    mesh = curved(fld, hexagons=False)
     before = edge_lengths(fld, np.asarray(mesh.points), mesh.edges, mesh.edge_mid)
     res = intrinsic_flips(fld, mesh)
     after = edge_lengths(fld, np.asarray(res.mesh.points), res.mesh.edges, res.mesh.edge_mid)

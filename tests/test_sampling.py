@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from curvimesh import fill, sampling
 from curvimesh.boundary import discretize_box
-from curvimesh.metric import load_metric
+from curvimesh.metric import load_metric, load_metric_text
 
 METRICS = Path(__file__).resolve().parent.parent / "metrics"
 
@@ -63,7 +63,7 @@ def test_backward_is_the_direction_within_20_degrees_of_the_way_back_in_the_metr
 def test_sparing_the_backward_shots_changes_no_point(name, monkeypatch):
     fld = load_metric(METRICS / f"{name}.yaml")
     opt = sampling.SamplingOptions()
-    bnd = discretize_box(fld, target=opt.spacing, min_dist=opt.min_dist)
+    bnd = discretize_box(fld, target=opt.step, min_dist=opt.min_dist)
     spared = sampling.sample_points(fld, bnd, opt)
     calls = []
 
@@ -87,7 +87,7 @@ def test_a_shot_back_along_the_geodesic_would_be_refused():
     dirs = sampling.principal_directions(g)
     pick = rng.integers(0, 4, len(start))
     d = dirs[np.arange(len(start)), pick]
-    shot = sampling.shoot(fld, start, d, opt.spacing, tol=opt.shoot_tol)
+    shot = sampling.shoot(fld, start, d, opt.step, tol=opt.shoot_tol)
     child, arrival = shot.end[shot.ok], shot.velocity[shot.ok]
     gc = fld.tensor(child)
     cdirs = sampling.principal_directions(gc)
@@ -95,7 +95,7 @@ def test_a_shot_back_along_the_geodesic_would_be_refused():
     # at most one way back from each child (none where the frame turned more than 20°)
     assert flags.sum(axis=1).max() == 1 and flags.sum() > 0.9 * len(child)
     back, row = cdirs[flags], np.nonzero(flags)[0]
-    again = sampling.shoot(fld, child[row], back, opt.spacing, tol=opt.shoot_tol)
+    again = sampling.shoot(fld, child[row], back, opt.step, tol=opt.shoot_tol)
     parents = start[shot.ok][row]
     assert sampling.too_close(fld, again.end, parents, opt.min_dist).all()
 
@@ -124,7 +124,7 @@ def test_fill_source_keys_survive_renumbering(n, extra, data):
 def test_gap_filling_without_retesting_refused_candidates_is_the_same(name, monkeypatch):
     fld = load_metric(METRICS / f"{name}.yaml")
     opt = sampling.SamplingOptions()
-    bnd = discretize_box(fld, target=opt.spacing, min_dist=opt.min_dist)
+    bnd = discretize_box(fld, target=opt.step, min_dist=opt.min_dist)
     pts = sampling.sample_points(fld, bnd, opt)
     remembered = fill.fill_gaps(fld, pts, opt)
     monkeypatch.setattr(fill, "_renumbered", lambda keys, n, m: keys[:0])  # forget them
@@ -191,3 +191,91 @@ def test_compiled_search_regions_are_the_numpy_ones_bit_for_bit(name):
     ref = sampling.search_regions(_TensorsOnly(fld), pts, 1.4)
     np.testing.assert_array_equal(fast.halfwidth, ref.halfwidth)
     np.testing.assert_array_equal(fast.quad, ref.quad)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.floats(0.0, math.pi),
+    st.floats(-3.0, 3.0),
+    st.floats(0.0, 2 * math.pi),
+    st.lists(st.integers(-3, 3), min_size=1, max_size=6),
+)
+def test_turned_directions_are_unit_and_60_degrees_apart_in_the_metric(
+    angle, log_ratio, heading, turns
+):
+    # g = R diag(1, r²) Rᵀ is the identity in u = diag(1, r) Rᵀ x: there the
+    # directions must be the unit vectors at 60° × turns counter-clockwise from ref
+    r = math.exp(log_ratio)
+    rot = rotation(angle)
+    g = rot @ np.diag([1.0, r * r]) @ rot.T
+    ref = rot @ (np.array([1.0, 1.0 / r]) * [math.cos(heading), math.sin(heading)]) * 0.3
+    dirs = sampling.turned_directions(g[None], ref[None], tuple(turns))[0]
+    u = np.array([1.0, r]) * (rot.T @ dirs.T).T
+    want = [heading + math.radians(60.0 * t) for t in turns]
+    np.testing.assert_allclose(u, np.column_stack([np.cos(want), np.sin(want)]), atol=1e-9)
+
+
+CONSTANT = """domain: {box: [[0, 0], [1, 1]]}
+metric:
+  eigen:
+    sizes: [0.05, 0.02]
+    angle: 0.5
+"""
+
+
+def test_hexagons_sample_an_equilateral_lattice_in_a_constant_metric():
+    # geodesics of a constant metric are straight: a point's children are at 0°
+    # and ±60° in the metric, exactly ``step`` away, and the rows grown from a side
+    # are the equilateral lattice of side 1 (six neighbours 1 away), up to the
+    # seams where the lattices of two sides meet; the principal directions make
+    # squares (four neighbours 0.98 away, the diagonals 1.39)
+    fld = load_metric_text(CONSTANT)
+    g = fld.tensor(np.zeros((1, 2)))[0]
+    for hexagons, neighbours, share in ((True, 6, 0.75), (False, 4, 0.75)):
+        opt = sampling.SamplingOptions(hexagons=hexagons)
+        bnd = discretize_box(fld, target=opt.step, min_dist=opt.min_dist)
+        pts = sampling.sample_points(fld, bnd, opt)
+        d = pts[:, None, :] - pts[None, len(bnd.vertices) :, :]
+        dist = np.sqrt(np.einsum("abi,ij,abj->ab", d, g, d))
+        unit = (np.abs(dist - opt.step) < 0.05).sum(axis=0)
+        assert unit.max() == neighbours
+        assert (unit == neighbours).mean() >= share
+
+
+CIRCLES = (
+    "domain: {box: [[-0.5, -1], [1.5, 1]]}\n"
+    "metric: {eigen: {sizes: [0.1, 0.005], angle: 'atan2(y, x - 0.5) + pi/2'}}\n"
+)
+
+
+def test_the_front_shoots_along_the_principal_directions_where_the_frame_turns_fast():
+    # circles about (0.5, 0), tangential size 0.1 (20:1, above the anisotropy from
+    # which frame_turn counts): a unit step along a circle of radius ρ turns the
+    # frame by 0.1 / ρ, 14.3° at ρ = 0.4 (over HEX_MAX_TURN = 10°) and 7.2° at
+    # ρ = 0.8 (also at the points one unit ahead, ρ = 0.80 ± 0.01)
+    fld = load_metric_text(CIRCLES)
+    front = np.array([[0.9, 0.0], [1.3, 0.0]])
+    g = fld.tensor(front)
+    arrival = np.array([[0.0, 0.1], [0.0, 0.1]])  # along the circles
+    dirs, shots = sampling.front_directions(
+        fld, front, arrival, arrival, sampling.FRONT_TURNS, hexagons=True
+    )
+    plain = sampling.principal_directions(g[:1])[0]
+    np.testing.assert_array_equal(dirs[0], plain)
+    np.testing.assert_array_equal(shots[0], ~sampling.backward(g[:1], plain[None], arrival[:1])[0])
+    np.testing.assert_array_equal(shots[1], [True, True, True, False])
+    hexa = sampling.turned_directions(g[1:], arrival[1:], sampling.FRONT_TURNS)[0]
+    np.testing.assert_array_equal(dirs[1, :3], hexa)
+
+
+def test_the_look_ahead_sees_the_frame_turn_fast_one_step_inwards():
+    # from ρ = 0.8 (7.2° per unit length), a step of 0.3 towards the centre ends at
+    # ρ = 0.5 (11.5°), steps away from it at ρ = 0.85 and 1.05 (6.7°, 5.5°); outside
+    # the box the turn counts as zero
+    fld = load_metric_text(CIRCLES)
+    start = np.array([[1.3, 0.0]])
+    inwards = np.array([[[-0.3, 0.0], [0.05, 0.0]]])
+    outwards = np.array([[[0.05, 0.0], [0.25, 0.0]]])
+    assert not sampling.turns_slowly_ahead(fld, start, inwards)[0]
+    assert sampling.turns_slowly_ahead(fld, start, outwards)[0]
+    assert sampling.turns_slowly_ahead(fld, np.array([[1.45, 0.0]]), outwards)[0]

@@ -83,10 +83,11 @@ def test_boundary_vertices_stay():
 
 def test_the_singular_centre_of_concentric_loses_its_long_edges():
     # radial 0.02, tangential 0.1 around a centre where the metric has no limit:
-    # without shifts (and without the removals at long edges and the repeated
-    # passes, which also act on them) the edges there stay up to about 2 long
+    # with the paper's sampling and without shifts (and without the removals at long
+    # edges and the repeated passes, which also act on them) the edges there stay
+    # up to about 2 long
     fld = load_metric(METRICS / "concentric.yaml")
-    opt = pipeline.AdaptOptions(shift=False, remove=False, repeat=False)
+    opt = pipeline.AdaptOptions(hexagons=False, shift=False, remove=False, repeat=False)
     mesh = pipeline.adapt(fld, opt).mesh
     before = lengths(fld, mesh)
     res = shift_vertices(fld, mesh)
@@ -136,3 +137,22 @@ def test_a_vertex_pushed_onto_an_edge_is_moved_off_it():
     assert after.min() >= min(0.7, lengths(fld, bad).min()) - 1e-12
     assert after.max() <= 1.8
     assert valid_exact(new[res.mesh.triangles]).all()
+
+
+def test_the_triangles_below_0_8_of_the_toy_mesh_are_raised():
+    # the toy metric adapted without shifts: the seams of the hexagonal lattices
+    # leave triangles of quality 0.65 - 0.8 with every edge in [0.7, 1.4], above the
+    # 0.3 of the clean-up stages; the quality pass raises them, and the old
+    # threshold (improve_below 0.3) leaves the mesh as it is
+    fld = load_metric(METRICS / "toy.yaml")
+    opt = pipeline.AdaptOptions(shift=False, remove=False, repeat=False)
+    mesh = pipeline.adapt(fld, opt).mesh
+    q0, len0 = _quality(fld, mesh), lengths(fld, mesh)
+    assert 0.3 < q0.min() < 0.8 and 0.7 <= len0.min() and len0.max() <= 1.4
+    assert shift_vertices(fld, mesh, improve_below=0.3).shifted == 0
+    res = shift_vertices(fld, mesh)
+    q1, len1 = _quality(fld, res.mesh), lengths(fld, res.mesh)
+    assert res.shifted >= 1
+    assert q1.min() > q0.min() and (q1 < 0.8).sum() < (q0 < 0.8).sum()
+    assert len1.min() >= 0.7 - 1e-9 and len1.max() <= 1.4 + 1e-9
+    assert valid_exact(np.asarray(res.mesh.points)[res.mesh.triangles]).all()

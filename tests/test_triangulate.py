@@ -232,7 +232,7 @@ def test_gap_filling_gives_the_same_points_without_insertion(name, monkeypatch, 
 
     fld = load_metric(METRICS / f"{name}.yaml")
     opt = SamplingOptions()
-    boundary = discretize_box(fld, target=opt.spacing, min_dist=opt.min_dist)
+    boundary = discretize_box(fld, target=opt.step, min_dist=opt.min_dist)
     pts = sample_points(fld, boundary, opt, seed=0)
     with_insertion = fill_gaps(fld, pts, opt)
     assert any(insertions)
