@@ -128,7 +128,8 @@ class SamplingOptions:
 #: left edges of 1.6 – 3.5 beside the singular centres of concentric fields and
 #: along tightly curved fronts (70 of 81 meshes met the targets; the paper's
 #: directions everywhere: 75); hexagons where the turn is below 20° at the point:
-#: 77. With the pass at 0.8: 20° at the point 78, but edges of 4.6 left at the
+#: 77. With the pass at 0.8: the paper's directions 75 again (u21 and u23 keep
+#: edges of 1.52 – 1.54), 20° at the point 78, but edges of 4.6 left at the
 #: tips of metrics/hard/tight_front.yaml (81° per unit length there), and of
 #: 1.5 – 1.8 with a threshold of 5 – 15° at the point alone; below 10° at the
 #: point and one unit ahead: 78, and the tight front within 0.7 – 1.4 (20° with
