@@ -8,11 +8,13 @@ with ``-v``. Ctrl-C exits with 130 and SIGTERM with 143, leaving no output.
 
 from __future__ import annotations
 
+import _thread
 import functools
 import json
 import math
 import signal
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable
@@ -76,6 +78,40 @@ def _quiet_finalizers() -> None:
     sys.unraisablehook = lambda _unraisable: None
 
 
+#: Seconds after which a signal lost in a finalizer is sent again.
+LOST_SIGNAL_DELAY = 0.05
+
+
+def _lost_signals_raised_again(default: Callable) -> Callable:
+    """An unraisable hook that sends SIGINT (SIGTERM) again when the exception it gets
+    is the KeyboardInterrupt (our SIGTERM exception) of a signal that landed in a
+    finalizer: Python ignores exceptions raised in ``__del__`` (it prints "Exception
+    ignored"), so a Ctrl-C during numba's loading of machine code, where llvmlite
+    objects are disposed of, was lost and the command ran on to the end. The signal
+    is sent again from another thread (``_thread.interrupt_main``),
+    :data:`LOST_SIGNAL_DELAY` later, so that its handler runs in the main thread once
+    the hook has returned, in the command's own frames (a handler run while the hook
+    runs would raise into it and be ignored again). Other unraisable exceptions go
+    to ``default``. The timers started are in the hook's ``timers``: the command
+    cancels those that have not fired when it ends."""
+
+    def hook(unraisable: Any) -> None:
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            signum = signal.SIGINT
+        elif isinstance(unraisable.exc_value, _Terminated):
+            signum = signal.SIGTERM
+        else:
+            default(unraisable)
+            return
+        timer = threading.Timer(LOST_SIGNAL_DELAY, _thread.interrupt_main, args=(signum,))
+        timer.daemon = True
+        timer.start()
+        hook.timers.append(timer)
+
+    hook.timers = []  # type: ignore[attr-defined]
+    return hook
+
+
 def command(fn: Callable) -> Callable:
     """Run a command body, turning our errors into one line and an exit code."""
 
@@ -86,6 +122,8 @@ def command(fn: Callable) -> Callable:
         ctx = Context()
         ctx.verbose, ctx.quiet = verbose, quiet
         old = signal.signal(signal.SIGTERM, _on_sigterm)
+        old_hook = sys.unraisablehook
+        sys.unraisablehook = hook = _lost_signals_raised_again(old_hook)
         try:
             for name in OUTPUT_OPTIONS:
                 if kwargs.get(name):
@@ -112,6 +150,10 @@ def command(fn: Callable) -> Callable:
             _fail(f"internal error ({type(exc).__name__}: {msg}); run with -v for details", 1)
         finally:
             signal.signal(signal.SIGTERM, old)
+            for timer in hook.timers:
+                timer.cancel()
+            if sys.unraisablehook is hook:  # not replaced by _quiet_finalizers
+                sys.unraisablehook = old_hook
 
     return wrapper
 
