@@ -73,7 +73,7 @@ from numpy.typing import NDArray
 
 from curvimesh.bezier import valid_exact
 from curvimesh.interpolation_error import element_l2_squared
-from curvimesh.mesh import Mesh, local_edge, signed_areas
+from curvimesh.mesh import Mesh, cells_at_vertices, local_edge, signed_areas
 
 #: Scalings s of an edge's bend tried each round (1 is the current node).
 SCALES = (1.25, 0.75, 0.5, 0.0)
@@ -196,20 +196,6 @@ def _best_nodes(
     return best_mid, best_parts, np.where(gain > 0.0, gain, 0.0)
 
 
-def triangles_at_vertices(tris3: NDArray, n: int) -> tuple[NDArray, NDArray]:
-    """The triangles around each vertex, in compressed rows: the triangles of
-    vertex v are ``order[start[v]:start[v + 1]]`` (``tris3`` ``(m, 3)``, n points).
-
-    >>> start, order = triangles_at_vertices(np.array([[0, 1, 2], [1, 3, 2]]), 4)
-    >>> order[start[2] : start[3]].tolist()
-    [0, 1]
-    """
-    flat = np.asarray(tris3).ravel()
-    by_vertex = np.argsort(flat, kind="stable")
-    start = np.searchsorted(flat[by_vertex], np.arange(n + 1))
-    return start, by_vertex // 3
-
-
 def unbend_outliers(
     f: Callable[[NDArray], NDArray],
     mesh: Mesh,
@@ -244,7 +230,7 @@ def unbend_outliers(
     worst = worst[local[worst] > ratio * mean]
     if worst.size == 0:
         return np.zeros(0, dtype=np.int64)
-    start, order = triangles_at_vertices(tris[:, :3], len(pts))
+    start, order = cells_at_vertices(tris[:, :3], len(pts))
     tri_edges, edge_tris, edges, emid = mesh.tri_edges, mesh.edge_tris, mesh.edges, mesh.edge_mid
     moved = []
     for t in worst.tolist():

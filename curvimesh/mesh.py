@@ -417,6 +417,25 @@ def apply_flips(
     return out
 
 
+def cells_at_vertices(cells: NDArray, n: int) -> tuple[NDArray, NDArray]:
+    """The cells around each vertex, in compressed rows: the rows of ``cells`` ``(m, k)``
+    (triangles' corners, edges' ends) holding vertex v are ``order[start[v]:start[v + 1]]``,
+    ascending (n points).
+
+    >>> start, order = cells_at_vertices(np.array([[0, 1, 2], [1, 3, 2]]), 4)
+    >>> order[start[2] : start[3]].tolist()
+    [0, 1]
+    >>> start, order = cells_at_vertices(np.array([[0, 1], [1, 2], [2, 0]]), 3)
+    >>> order[start[0] : start[1]].tolist()
+    [0, 2]
+    """
+    cells = np.asarray(cells)
+    flat = cells.ravel()
+    by_vertex = np.argsort(flat, kind="stable")
+    start = np.searchsorted(flat[by_vertex], np.arange(n + 1))
+    return start, by_vertex // cells.shape[1]
+
+
 def sorted_member(sorted_keys: NDArray, keys: NDArray) -> NDArray[np.bool_]:
     """Whether each of ``keys`` ``(k,)`` is in the ascending array ``sorted_keys``, by
     binary search (np.isin sorts or hashes both arrays at every call).

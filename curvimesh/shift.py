@@ -56,7 +56,7 @@ from numpy.typing import NDArray
 
 from curvimesh.bezier import valid_exact
 from curvimesh.freenode import shortest_parabola
-from curvimesh.mesh import Mesh
+from curvimesh.mesh import Mesh, cells_at_vertices
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths, edge_lengths_fast, metric_areas, quality_from
 
@@ -114,12 +114,7 @@ class _Incidence:
     @classmethod
     def of(cls, mesh: Mesh) -> _Incidence:
         n = len(mesh.points)
-        corners, ends = mesh.triangles[:, :3].ravel(), mesh.edges.ravel()
-        by_corner = np.argsort(corners, kind="stable")
-        by_end = np.argsort(ends, kind="stable")
-        start = np.searchsorted(corners[by_corner], np.arange(n + 1))
-        estart = np.searchsorted(ends[by_end], np.arange(n + 1))
-        return cls(start, by_corner // 3, estart, by_end // 2)
+        return cls(*cells_at_vertices(mesh.triangles[:, :3], n), *cells_at_vertices(mesh.edges, n))
 
 
 def _star(mesh: Mesh, inc: _Incidence, v: int) -> _Star:
