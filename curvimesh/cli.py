@@ -82,7 +82,7 @@ def _quiet_finalizers() -> None:
 LOST_SIGNAL_DELAY = 0.05
 
 
-def _lost_signals_raised_again(default: Callable) -> Callable:
+class _LostSignals:
     """An unraisable hook that sends SIGINT (SIGTERM) again when the exception it gets
     is the KeyboardInterrupt (our SIGTERM exception) of a signal that landed in a
     finalizer: Python ignores exceptions raised in ``__del__`` (it prints "Exception
@@ -92,24 +92,28 @@ def _lost_signals_raised_again(default: Callable) -> Callable:
     :data:`LOST_SIGNAL_DELAY` later, so that its handler runs in the main thread once
     the hook has returned, in the command's own frames (a handler run while the hook
     runs would raise into it and be ignored again). Other unraisable exceptions go
-    to ``default``. The timers started are in the hook's ``timers``: the command
-    cancels those that have not fired when it ends."""
+    to ``default``; :meth:`cancel` stops the timers that have not fired."""
 
-    def hook(unraisable: Any) -> None:
+    def __init__(self, default: Callable) -> None:
+        self.default = default
+        self.timers: list[threading.Timer] = []
+
+    def __call__(self, unraisable: Any) -> None:
         if isinstance(unraisable.exc_value, KeyboardInterrupt):
             signum = signal.SIGINT
         elif isinstance(unraisable.exc_value, _Terminated):
             signum = signal.SIGTERM
         else:
-            default(unraisable)
+            self.default(unraisable)
             return
         timer = threading.Timer(LOST_SIGNAL_DELAY, _thread.interrupt_main, args=(signum,))
         timer.daemon = True
         timer.start()
-        hook.timers.append(timer)
+        self.timers.append(timer)
 
-    hook.timers = []  # type: ignore[attr-defined]
-    return hook
+    def cancel(self) -> None:
+        for timer in self.timers:
+            timer.cancel()
 
 
 def command(fn: Callable) -> Callable:
@@ -123,7 +127,7 @@ def command(fn: Callable) -> Callable:
         ctx.verbose, ctx.quiet = verbose, quiet
         old = signal.signal(signal.SIGTERM, _on_sigterm)
         old_hook = sys.unraisablehook
-        sys.unraisablehook = hook = _lost_signals_raised_again(old_hook)
+        sys.unraisablehook = hook = _LostSignals(old_hook)
         try:
             for name in OUTPUT_OPTIONS:
                 if kwargs.get(name):
@@ -150,8 +154,7 @@ def command(fn: Callable) -> Callable:
             _fail(f"internal error ({type(exc).__name__}: {msg}); run with -v for details", 1)
         finally:
             signal.signal(signal.SIGTERM, old)
-            for timer in hook.timers:
-                timer.cancel()
+            hook.cancel()
             if sys.unraisablehook is hook:  # not replaced by _quiet_finalizers
                 sys.unraisablehook = old_hook
 
