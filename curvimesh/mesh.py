@@ -36,6 +36,7 @@ __all__ = [
     "Mesh",
     "apply_flips",
     "boundary_sides",
+    "cells_at_vertices",
     "flip_candidates",
     "independent_flips",
     "is_conforming",
