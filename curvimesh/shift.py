@@ -178,7 +178,7 @@ def shift_vertices(
                 got = _best_move(field, mesh, pts, length, star, int(v), cand, rule)
                 if got is None:
                     continue
-                pts, length[star.edges], quality[star.tris] = got
+                pts[v], pts[mesh.edge_mid[star.edges]], length[star.edges], quality[star.tris] = got
                 moved += 1
                 break
         moved += _quality_pass(
@@ -236,8 +236,7 @@ def _quality_pass(
             got = _best_move(field, mesh, pts, length, star, v, cand, rule)
             if got is None:
                 continue
-            new, length[star.edges], quality[star.tris] = got
-            pts[:] = new
+            pts[v], pts[mesh.edge_mid[star.edges]], length[star.edges], quality[star.tris] = got
             moved += 1
             break
     return moved
@@ -289,10 +288,10 @@ def _best_move(
     v: int,
     cand: NDArray,
     rule: _Rule,
-) -> tuple[NDArray, NDArray, NDArray] | None:
+) -> tuple[NDArray, NDArray, NDArray, NDArray] | None:
     """The best admissible position of v among ``cand`` (module docstring, ``rule``):
-    the new nodes, the incident edges' lengths and the star's qualities; None
-    if there is none.
+    v's new position, its incident edges' new middle nodes ``(j, 2)`` and lengths
+    ``(j,)``, and the star's qualities ``(s,)``; None if there is none.
     """
     k, j = len(cand), len(star.edges)
     if k == 0:
@@ -337,17 +336,17 @@ def _best_move(
             score = new_len[good].max(axis=1) if good.size else np.empty(0)
         for r, sc in zip(good, score, strict=True):
             found.append((float(sc), int(rows[r]), nodes[r]))
+    others = pts[star.others]
+    pairs = np.column_stack([np.zeros(j, dtype=int), np.arange(1, j + 1)])
     for _score, i, nodes in sorted(found, key=lambda f: (f[0], f[1]))[:4]:
-        new = pts.copy()
-        new[v] = cand[i]
-        for kk in range(j):
-            new[mesh.edge_mid[star.edges[kk]]] = nodes[star.slots == kk][0]
-        exact = edge_lengths(field, new, mesh.edges[star.edges], mesh.edge_mid[star.edges])
+        mids = np.array([nodes[star.slots == kk][0] for kk in range(j)])
+        local = np.vstack([cand[i][None], others, mids])
+        exact = edge_lengths(field, local, pairs, np.arange(j + 1, 2 * j + 1))
         if not rule.lengths_ok(exact):
             continue
         lens = lens0.copy()
         lens[inc >= 0] = exact[inc[inc >= 0]]
         q = quality_from(metric_areas(field, nodes), lens)
         if rule.quality_ok(q):
-            return new, exact, q
+            return cand[i], mids, exact, q
     return None
