@@ -794,7 +794,8 @@ def parabola_verdicts(
     where the field is compiled, the search stops as soon as its verdict is
     known (:func:`curvimesh.kernels.classify_parabolas`: a length below
     ``short`` seen, or the bracket's convex floor above ``long``, or a length
-    at most ``long`` seen with the floor at least ``short``).
+    at most ``long`` seen with the floor at least ``short``; the floor only
+    once the bracket is at most :data:`curvimesh.kernels.FLOOR_WIDTH` wide in α).
     """
     lo = -np.inf if short is None else short
     hi = np.broadcast_to(np.inf if long is None else np.asarray(long, dtype=float), (len(a),))

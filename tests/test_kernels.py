@@ -483,6 +483,25 @@ def test_verdicts_stopping_early_match_full_searches(name):
     assert np.array_equal(one_sided, np.where(length < 0.7, -1, 0))
 
 
+def test_verdicts_find_a_short_parabola_in_a_narrow_valley_of_alpha():
+    # two points 0.066 apart across the front (the pair of a 0.6991 edge sampled at
+    # seed 4): the parabola is short only where it follows the front, α ≈ 0.08,
+    # between the scanned values 0 and 0.25 (lengths 1.88 and 1.82): not convex in α
+    # on the scan's bracket, whose secants put the floor at 0.87
+    fast, ref = both(load_metric(METRICS / "front.yaml"))
+    a, b = np.array([[0.71834314, 0.24216946]]), np.array([[0.78463087, 0.24148866]])
+    alpha = np.linspace(-0.5, 0.5, 2001)
+    x0, x1 = np.repeat(a, alpha.size, 0), np.repeat(b, alpha.size, 0)
+    profile = geo.parabola_length(ref, x0, x1, geo.parabola_midnode(x0, x1, alpha))
+    shortest = profile.min()
+    assert 0.69 < shortest < 0.7 and 0.07 < alpha[profile.argmin()] < 0.09
+    assert profile[alpha == 0.0][0] > 1.8 and profile[np.isclose(alpha, 0.25)][0] > 1.8
+    for fld in (fast, ref):
+        assert geo.parabola_verdicts(fld, a, b, short=0.7).tolist() == [-1]
+        assert geo.parabola_verdicts(fld, b, a, short=0.7, long=np.array([1.4])).tolist() == [-1]
+        assert geo.any_closer(fld, a, b, np.array([0, 1]), np.array([0]), 0.7).tolist() == [True]
+
+
 @pytest.mark.parametrize("name", ["toy", "three_toys", "front"])
 def test_compiled_metric_areas_match_numpy(name):
     from curvimesh.quality import metric_areas
