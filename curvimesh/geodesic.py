@@ -380,6 +380,7 @@ def shortest_parabola(
     order: int = 5,
     exact_length: bool = True,
     remember: bool = True,
+    guided: bool | None = None,
     start: NDArray | None = None,
 ) -> Parabolas:
     """The shortest parabola between each pair of points (paper equation (3)).
@@ -400,7 +401,9 @@ def shortest_parabola(
     (:func:`geodesic_alpha`) and keep its minimum when no value of the coarse
     scan is shorter, else search as above
     (:func:`curvimesh.kernels.shortest_parabolas_guided`): still a function of
-    the pair alone, so the memo stays exact.
+    the pair alone, so the memo stays exact. ``guided`` (default: ``remember``)
+    chooses that search without the memo too: the same answers, for pairs that
+    will not come again.
 
     ``start`` ``(n,)`` are guesses of α (NaN: none), for pairs whose points
     moved a little since their last search: the compiled search walks downhill
@@ -421,7 +424,10 @@ def shortest_parabola(
             field, x0, x1, grid, alpha_tol, segments, order, start=np.asarray(start, dtype=float)
         )
     elif not remember:
-        alpha, f_alpha = _search_alpha(field, x0, x1, grid, alpha_tol, segments, order)
+        guess = None
+        if (remember if guided is None else guided) and field.kernel is not None:
+            guess = geodesic_alpha(field, x0, x1)
+        alpha, f_alpha = _search_alpha(field, x0, x1, grid, alpha_tol, segments, order, guess=guess)
     else:
         memo = _memo(field, (alpha_max, scan, alpha_tol, segments, order))
         keys = _pair_keys(x0, x1)

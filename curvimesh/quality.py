@@ -60,9 +60,12 @@ def remembers(field: MetricField) -> bool:
     return known
 
 
-def _memoised(field: MetricField, key: tuple, width: int, rows: NDArray, compute) -> NDArray:
-    """``compute(rows)``, through the field's memo table ``key`` where it :func:`remembers`."""
-    if not remembers(field):
+def _memoised(
+    field: MetricField, key: tuple, width: int, rows: NDArray, compute, remember: bool = True
+) -> NDArray:
+    """``compute(rows)``, through the field's memo table ``key`` where it :func:`remembers`
+    (and ``remember``: False for rows that will not come again)."""
+    if not (remember and remembers(field)):
         return compute(np.ascontiguousarray(rows, dtype=np.float64).reshape(len(rows), width))
     return memoised(memo_table(field, key, width), rows, compute)
 
@@ -90,12 +93,14 @@ def triangle_rule(n: int) -> tuple[NDArray, NDArray]:
     return uv, W.ravel()
 
 
-def metric_areas(field: MetricField, nodes: NDArray, *, order: int = 4) -> NDArray:
+def metric_areas(
+    field: MetricField, nodes: NDArray, *, order: int = 4, remember: bool = True
+) -> NDArray:
     """Metric areas ∫_t sqrt(det g) dx of curved triangles ``(m,)`` from nodes ``(m, 6, 2)``.
 
     Uses :func:`triangle_rule` of the given order on the reference triangle;
     J(ξ) enters with its sign, so an inverted triangle has a smaller area.
-    Areas are remembered by their nodes (:mod:`curvimesh.memo`).
+    Areas are remembered by their nodes (:mod:`curvimesh.memo`) with ``remember``.
     """
     nodes = np.asarray(nodes, dtype=float).reshape(-1, 6, 2)
     return _memoised(
@@ -104,6 +109,7 @@ def metric_areas(field: MetricField, nodes: NDArray, *, order: int = 4) -> NDArr
         12,
         nodes.reshape(-1, 12),
         lambda rows: _metric_areas(field, rows, order),
+        remember,
     )
 
 
@@ -149,15 +155,18 @@ def edge_lengths(
     return _memoised(field, ("edge_lengths", rtol), 6, np.column_stack([x0, x1, xm]), compute)
 
 
-def edge_lengths_fast(field: MetricField, x0: NDArray, x1: NDArray, xm: NDArray) -> NDArray:
+def edge_lengths_fast(
+    field: MetricField, x0: NDArray, x1: NDArray, xm: NDArray, *, remember: bool = True
+) -> NDArray:
     """Edge lengths ``(E,)`` with a fixed 2×5-point Gauss rule (for the optimisation loops),
-    remembered by their nodes (:mod:`curvimesh.memo`)."""
+    remembered by their nodes (:mod:`curvimesh.memo`) with ``remember``."""
     return _memoised(
         field,
         ("edge_lengths_fast",),
         6,
         np.column_stack([x0, x1, xm]),
         lambda r: parabola_length_rule(field, r[:, 0:2], r[:, 2:4], r[:, 4:6], segments=2, order=5),
+        remember,
     )
 
 

@@ -298,7 +298,9 @@ def _best_move(
         return None
     a = np.repeat(cand, j, axis=0)
     b = np.tile(pts[star.others], (k, 1))
-    optimal = shortest_parabola(field, a, b, exact_length=False).mid.reshape(k, j, 2)
+    # the candidates' pairs seldom come again: searched and measured without the memo
+    optimal = shortest_parabola(field, a, b, exact_length=False, remember=False, guided=True)
+    optimal = optimal.mid.reshape(k, j, 2)
     straight = 0.5 * (a + b).reshape(k, j, 2)
     base = pts[mesh.triangles[star.tris]]  # (s, 6, 2)
     inc = star.slots[:, 3:]  # (s, 3): incident edge k, or −2
@@ -324,12 +326,14 @@ def _best_move(
             np.repeat(cand[rows], j, axis=0),
             np.tile(pts[star.others], (len(rows), 1)),
             mid.reshape(-1, 2),
+            remember=False,
         ).reshape(len(rows), j)
         good = np.flatnonzero(rule.lengths_ok(new_len))
         if rule.by_quality and good.size:
             lens = np.repeat(lens0[None], good.size, axis=0)
             lens[:, inc >= 0] = new_len[good][:, inc[inc >= 0]]
-            areas = metric_areas(field, nodes[good].reshape(-1, 6, 2)).reshape(good.size, -1)
+            areas = metric_areas(field, nodes[good].reshape(-1, 6, 2), remember=False)
+            areas = areas.reshape(good.size, -1)
             scores = -quality_from(areas.reshape(-1), lens.reshape(-1, 3)).reshape(good.size, -1)
             score = scores.max(axis=1)
         else:

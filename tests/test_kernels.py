@@ -569,6 +569,17 @@ def test_repeated_searches_are_remembered_exactly():
         dataclasses.replace(fld, name="other"), mixed_a, mixed_b, exact_length=False
     )
     assert np.array_equal(again.alpha, fresh.alpha)  # what a search from scratch gives
+    # the same search without the memo (for pairs that will not come again)
+    calls.clear()
+    try:
+        geo._search_alpha = counting
+        alone = geo.shortest_parabola(
+            fld, mixed_a, mixed_b, exact_length=False, remember=False, guided=True
+        )
+    finally:
+        geo._search_alpha = real
+    assert calls == [500]
+    assert np.array_equal(alone.alpha, again.alpha) and np.array_equal(alone.length, again.length)
 
 
 def test_search_memo_runs_answer_as_a_dictionary(monkeypatch):

@@ -96,9 +96,11 @@ metric:
     again = np.concatenate([nodes[150:], nodes[::2]])
     assert np.array_equal(metric_areas(fld, again), metric_areas(fresh, again))
     assert np.array_equal(metric_areas(fld, nodes[::2]), whole[::2])
+    assert np.array_equal(metric_areas(fld, nodes, remember=False), whole)
     x0, x1, xm = corners[:, 0], corners[:, 1], mids[:, 0]
     first = edge_lengths_fast(fld, x0, x1, xm)
     assert np.array_equal(edge_lengths_fast(fld, x0[::-1], x1[::-1], xm[::-1]), first[::-1])
+    assert np.array_equal(edge_lengths_fast(fresh, x0, x1, xm, remember=False), first)
     # exact lengths take their two-segment level from those: the adaptive rule's values
     pts = np.concatenate([x0, x1, xm])
     edges, mid_ids = np.column_stack([np.arange(200), np.arange(200, 400)]), np.arange(400, 600)
