@@ -425,7 +425,7 @@ def shortest_parabola(
         )
     elif not remember:
         guess = None
-        if (remember if guided is None else guided) and field.kernel is not None:
+        if guided and field.kernel is not None:  # (None, the default here: not guided)
             guess = geodesic_alpha(field, x0, x1)
         alpha, f_alpha = _search_alpha(field, x0, x1, grid, alpha_tol, segments, order, guess=guess)
     else:

@@ -72,7 +72,7 @@ ANGLES = (0.0, 0.5, -0.5, 1.0, -1.0, 1.5, -1.5)
 #: Quality (4) below which a triangle's vertices are tried for a better position.
 #: Measured on the toy metric: 1.2 % of the triangles are below it at 10⁴ vertices
 #: (the seams of the sampling's hexagonal lattices); with the pass the worst
-#: quality is 0.80 from 10³ to 10⁵ vertices (0.67 – 0.74 without), for 2 s at 10⁵.
+#: quality is 0.80 from 10³ to 10⁵ vertices (0.67 – 0.74 without), for 0.5 s at 10⁵.
 IMPROVE_BELOW = 0.8
 
 #: Fractions of the optimal offset tried for the moved vertex's edges, in order.
