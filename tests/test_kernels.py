@@ -775,3 +775,21 @@ def test_loading_a_cached_metric_marks_it_as_used(tmp_path, monkeypatch):
     os.utime(module, (1, 1))
     kernels.compile_metric(src, "field_g", "field_gd")
     assert module.stat().st_mtime > 1e9
+
+
+def test_the_kernels_take_the_metric_typed_once():
+    import numba
+
+    fld = load_metric(METRICS / "toy.yaml")
+    cm = fld.kernel
+    assert isinstance(cm.g, kernels.TypedFunction) and isinstance(cm.gd, kernels.TypedFunction)
+    # numba reads the type kept, the one it would build from the cfunc
+    assert numba.typeof(cm.g) == numba.typeof(cm.g.cfunc)
+    assert numba.typeof(cm.gd) == numba.typeof(cm.gd.cfunc)
+    pts = box_points(fld, 300, 91)
+    held, raw = np.empty((300, 2, 2)), np.empty((300, 2, 2))
+    kernels._eval_g(cm.g, pts, held)
+    kernels._eval_g(cm.g.cfunc, pts, raw)
+    assert np.array_equal(held, raw)
+    np.testing.assert_allclose(held, fld.tensor(pts), rtol=1e-12)
+    assert cm.g(0.1, 0.2) == cm.g.cfunc(0.1, 0.2)
