@@ -28,7 +28,12 @@ Every run is a fresh subprocess (this file with ``--worker``), which reports
 its own peak RSS (``ru_maxrss``) read right after meshing, before the quality
 report. Each configuration runs ``--repeat`` times and medians are quoted,
 except that a configuration whose first run takes longer than
-``--max-repeat-seconds`` runs once (the ``runs`` column says how many).
+``--max-repeat-seconds`` runs once (the ``runs`` column says how many). At each
+size the tools take turns (curvimesh, BAMG, BAMG with ``SmoothRatio`` 1, then
+again), so that a drift of the machine's speed over the minutes of a size falls
+on all of them alike: BAMG's median at the three toys' 10⁵ vertices was 22.8 s
+in one run of this script and 15.9 s in the next, with the tools run one after
+the other.
 
 Also measured: throughput of :func:`curvimesh.geodesic.shortest_parabola` on
 10⁵ unit edges of the toy metric, and a cProfile of one mid-size adapt.
@@ -465,21 +470,30 @@ def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def measure(spec: dict, repeat: int, max_repeat_seconds: float) -> dict:
-    """Run a configuration up to ``repeat`` times; medians of its times.
+def measure(specs: dict[str, dict], repeat: int, max_repeat_seconds: float) -> dict[str, dict]:
+    """Run each configuration of ``specs`` (by name) up to ``repeat`` times, in turns
+    (one run of each, then again); medians of each one's times.
 
-    Only the first run computes the quality report (runs are deterministic:
-    same seed, same mesh). Repeats stop after a first run longer than
-    ``max_repeat_seconds``.
+    Only the first run of each computes the quality report (runs are
+    deterministic: same seed, same mesh). A configuration's repeats stop after a
+    first run longer than ``max_repeat_seconds``, or at an error.
     """
-    runs = []
+    runs: dict[str, list[dict]] = {name: [] for name in specs}
+    errors: dict[str, dict] = {}
     for i in range(repeat):
-        r = run_worker({**spec, "report": i == 0})
-        if "error" in r:
-            return {"error": r["error"], "runs": len(runs)}
-        runs.append(r)
-        if r["total"] > max_repeat_seconds:
-            break
+        for name, spec in specs.items():
+            if name in errors or (i > 0 and runs[name][0]["total"] > max_repeat_seconds):
+                continue
+            r = run_worker({**spec, "report": i == 0})
+            if "error" in r:
+                errors[name] = {"error": r["error"], "runs": len(runs[name])}
+            else:
+                runs[name].append(r)
+    return {name: errors.get(name) or _summary(runs[name]) for name in specs}
+
+
+def _summary(runs: list[dict]) -> dict:
+    """Medians of the times of a configuration's runs, its first run's mesh figures."""
     stages = list(runs[0]["seconds"])
     out = {
         "runs": len(runs),
@@ -635,7 +649,8 @@ def write_markdown(ctx: dict, all_results: dict, throughput: dict, profiles: dic
         f"Python {platform.python_version()}, numpy {np.__version__}, Gmsh {ctx['gmsh']}.",
         "",
         "Times are medians over `runs` fresh processes (a configuration whose first run "
-        f"took over {ctx['max_repeat_seconds']:g} s ran once). Peak RSS is the process's "
+        f"took over {ctx['max_repeat_seconds']:g} s ran once), the tools taking turns at "
+        "each size (curvimesh, then each Gmsh setting, then again). Peak RSS is the process's "
         "`ru_maxrss` right after meshing (in brackets: before meshing, after imports and "
         "metric loading). Quality figures are `curvimesh.report.mesh_report` in our metric, "
         "for Gmsh on its P1 mesh: edge lengths in the metric (in range: 0.7 ≤ L ≤ 1.4), "
@@ -828,14 +843,13 @@ def main(argv: list[str] | None = None) -> int:
         tools: dict[str, dict[float, dict]] = {"curvimesh": {}, **{k: {} for k in GMSH_SETTINGS}}
         for s in scales[name]:
             base = {"metric": name, "s": s}
-            r = measure({**base, "kind": "adapt"}, args.repeat, args.max_repeat_seconds)
-            tools["curvimesh"][s] = r
-            log(f"{name} s={s}: curvimesh {r.get('vertices')} vertices, {r.get('total', 0):.1f} s")
+            specs = {"curvimesh": {**base, "kind": "adapt"}}
             for tool, ratio in GMSH_SETTINGS.items():
-                spec = {**base, "kind": "gmsh", "smooth_ratio": ratio}
-                g = measure(spec, args.repeat, args.max_repeat_seconds)
-                tools[tool][s] = g
-                log(f"{name} s={s}: {tool} {g.get('vertices')} vertices, {g.get('total', 0):.2f} s")
+                specs[tool] = {**base, "kind": "gmsh", "smooth_ratio": ratio}
+            got = measure(specs, args.repeat, args.max_repeat_seconds)
+            for tool, r in got.items():
+                tools[tool][s] = r
+                log(f"{name} s={s}: {tool} {r.get('vertices')} vertices, {r.get('total', 0):.2f} s")
         all_results[name] = tools
 
     throughput: dict = {}
