@@ -436,34 +436,53 @@ def _time_limit(seconds: float | None) -> Iterator[None]:
     input, and no bound on the text prevents it. A timer thread raises
     :class:`_OutOfTime` asynchronously in this thread once the time is up
     (CPython's ``PyThreadState_SetAsyncExc``); this costs nothing until then,
-    unlike a profile hook. An exception still pending when the work is done is
-    cleared, under a lock, before leaving, so none escapes to the caller.
+    unlike a profile hook. Python ignores an exception raised inside a finalizer
+    or a garbage collector callback (it prints it as unraisable), so the timer
+    sends it again every :data:`REFIRE` seconds until the work ends (once lost
+    so under a test suite's collector callback, the limit let 3.2 s of sympy
+    run). An exception still pending when the work is done is cleared, under a
+    lock, before leaving, so none escapes to the caller.
     """
     if seconds is None:
         yield
         return
     thread_id = ctypes.c_ulong(threading.get_ident())
     lock = threading.Lock()
+    ended = threading.Event()
     done = fired = False
 
     def fire() -> None:
         nonlocal fired
-        with lock:
-            if not done:
+        while True:
+            with lock:
+                if done:
+                    return
                 fired = True
                 _set_async_exc(thread_id, ctypes.py_object(_OutOfTime))
+            if ended.wait(REFIRE):
+                return
 
     timer = threading.Timer(seconds, fire)
     timer.daemon = True
-    timer.start()
     try:
+        timer.start()  # (a short limit can be up while start() waits for the thread)
         yield
     finally:
-        with lock:
-            done = True
-            if fired:  # raised already, or pending: clear it (NULL clears)
-                _set_async_exc(thread_id, None)
+        while True:  # a shot may land here too, before ``done`` is set: again
+            try:
+                with lock:
+                    done = True
+                    if fired:  # raised already, or pending: clear it (NULL clears)
+                        _set_async_exc(thread_id, None)
+                break
+            except _OutOfTime:
+                continue
+        ended.set()
         timer.cancel()
+
+
+#: Seconds between the time limit's shots once it is up (see :func:`_time_limit`).
+REFIRE = 0.05
 
 
 # (thread id as c_ulong, exception class as py_object, or None: NULL, which clears)

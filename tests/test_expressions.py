@@ -444,6 +444,23 @@ def test_the_time_limit_interrupts_sympy():
         parse_expression(HEAVY[-1], NAMES, time_limit=0.05)
 
 
+def test_the_time_limit_is_not_lost_in_a_finalizer():
+    from curvimesh import expressions
+
+    class Slow:
+        def __del__(self):  # the limit's first shot lands here, where Python ignores it
+            end = time.perf_counter() + 0.3
+            while time.perf_counter() < end:
+                pass
+
+    start = time.perf_counter()
+    with pytest.raises(expressions._OutOfTime), expressions._time_limit(0.05):
+        Slow()  # collected at once
+        while time.perf_counter() - start < 3.0:
+            pass
+    assert time.perf_counter() - start < 1.0
+
+
 def test_a_time_limit_running_out_at_the_end_leaves_nothing_behind():
     # Limits about as long as the work: the interruption is due just as the work
     # ends. Either way nothing may be raised once parse_expression has returned.
