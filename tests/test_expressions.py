@@ -444,6 +444,7 @@ def test_the_time_limit_interrupts_sympy():
         parse_expression(HEAVY[-1], NAMES, time_limit=0.05)
 
 
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the lost shot
 def test_the_time_limit_is_not_lost_in_a_finalizer():
     from curvimesh import expressions
 
