@@ -380,7 +380,7 @@ def shortest_parabola(
     order: int = 5,
     exact_length: bool = True,
     remember: bool = True,
-    guided: bool | None = None,
+    guided: bool = False,
     start: NDArray | None = None,
 ) -> Parabolas:
     """The shortest parabola between each pair of points (paper equation (3)).
@@ -401,9 +401,9 @@ def shortest_parabola(
     (:func:`geodesic_alpha`) and keep its minimum when no value of the coarse
     scan is shorter, else search as above
     (:func:`curvimesh.kernels.shortest_parabolas_guided`): still a function of
-    the pair alone, so the memo stays exact. ``guided`` (default: ``remember``)
-    chooses that search without the memo too: the same answers, for pairs that
-    will not come again.
+    the pair alone, so the memo stays exact. ``guided`` chooses that search
+    without the memo too (the remembered searches are always guided): the same
+    answers, for pairs that will not come again.
 
     ``start`` ``(n,)`` are guesses of α (NaN: none), for pairs whose points
     moved a little since their last search: the compiled search walks downhill
@@ -423,23 +423,17 @@ def shortest_parabola(
         alpha, f_alpha = _search_alpha(
             field, x0, x1, grid, alpha_tol, segments, order, start=np.asarray(start, dtype=float)
         )
+    elif guided and not remember:
+        alpha, f_alpha = _guided_search(field, x0, x1, grid, alpha_tol, segments, order)
     elif not remember:
-        guess = None
-        if guided and field.kernel is not None:  # (None, the default here: not guided)
-            guess = geodesic_alpha(field, x0, x1)
-        alpha, f_alpha = _search_alpha(field, x0, x1, grid, alpha_tol, segments, order, guess=guess)
+        alpha, f_alpha = _search_alpha(field, x0, x1, grid, alpha_tol, segments, order)
     else:
         memo = _memo(field, (alpha_max, scan, alpha_tol, segments, order))
         keys = _pair_keys(x0, x1)
         alpha, f_alpha, found = memo.find(keys)
         todo = np.flatnonzero(~found)
         if todo.size:
-            guess = None
-            if field.kernel is not None:
-                guess = geodesic_alpha(field, x0[todo], x1[todo])
-            a, f = _search_alpha(
-                field, x0[todo], x1[todo], grid, alpha_tol, segments, order, guess=guess
-            )
+            a, f = _guided_search(field, x0[todo], x1[todo], grid, alpha_tol, segments, order)
             alpha[todo], f_alpha[todo] = a, f
             memo.add(keys[todo], a, f)
     mid = mid0 + alpha[:, None] * nrm
@@ -448,6 +442,14 @@ def shortest_parabola(
     else:
         ln = f_alpha
     return Parabolas(alpha, mid, ln)
+
+
+def _guided_search(field, x0, x1, grid, alpha_tol, segments, order):
+    """:func:`_search_alpha` from the geodesic's bend at each chord's middle
+    (:func:`geodesic_alpha`) where the field is compiled: the search of the pairs not
+    in the memo (:func:`shortest_parabola`)."""
+    guess = geodesic_alpha(field, x0, x1) if field.kernel is not None else None
+    return _search_alpha(field, x0, x1, grid, alpha_tol, segments, order, guess=guess)
 
 
 def _search_alpha(field, x0, x1, grid, alpha_tol, segments, order, start=None, guess=None):

@@ -296,8 +296,9 @@ def _best_move(
     k, j = len(cand), len(star.edges)
     if k == 0:
         return None
+    others = pts[star.others]
     a = np.repeat(cand, j, axis=0)
-    b = np.tile(pts[star.others], (k, 1))
+    b = np.tile(others, (k, 1))
     # the candidates' pairs seldom come again: searched and measured without the memo
     optimal = shortest_parabola(field, a, b, exact_length=False, remember=False, guided=True)
     optimal = optimal.mid.reshape(k, j, 2)
@@ -306,7 +307,7 @@ def _best_move(
     inc = star.slots[:, 3:]  # (s, 3): incident edge k, or −2
     lens0 = length[mesh.tri_edges[star.tris]]  # (s, 3)
     todo = np.ones(k, dtype=bool)
-    found: list[tuple[float, int, NDArray]] = []  # (score, candidate, star nodes)
+    found: list[tuple[float, int, NDArray, NDArray]] = []  # (score, candidate, nodes, mids)
     for frac in BACKTRACK:
         rows = np.flatnonzero(todo)
         if rows.size == 0:
@@ -324,7 +325,7 @@ def _best_move(
         new_len = edge_lengths_fast(
             field,
             np.repeat(cand[rows], j, axis=0),
-            np.tile(pts[star.others], (len(rows), 1)),
+            np.tile(others, (len(rows), 1)),
             mid.reshape(-1, 2),
             remember=False,
         ).reshape(len(rows), j)
@@ -339,11 +340,9 @@ def _best_move(
         else:
             score = new_len[good].max(axis=1) if good.size else np.empty(0)
         for r, sc in zip(good, score, strict=True):
-            found.append((float(sc), int(rows[r]), nodes[r]))
-    others = pts[star.others]
+            found.append((float(sc), int(rows[r]), nodes[r], mid[r]))
     pairs = np.column_stack([np.zeros(j, dtype=int), np.arange(1, j + 1)])
-    for _score, i, nodes in sorted(found, key=lambda f: (f[0], f[1]))[:4]:
-        mids = np.array([nodes[star.slots == kk][0] for kk in range(j)])
+    for _score, i, nodes, mids in sorted(found, key=lambda f: (f[0], f[1]))[:4]:
         local = np.vstack([cand[i][None], others, mids])
         exact = edge_lengths(field, local, pairs, np.arange(j + 1, 2 * j + 1))
         if not rule.lengths_ok(exact):
