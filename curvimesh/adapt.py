@@ -284,10 +284,13 @@ class Defects:
     def count(self) -> int:
         return self.long_edges + self.flat_triangles
 
-    def worse_than(self, other: Defects, *, min_length: float = 0.7) -> bool:
-        """Whether these figures are worse than ``other``'s: a longer longest edge, a
-        lower worst quality, a new edge below ``min_length``, or, with the same
-        extremes, more defects.
+    def worse_than(
+        self, other: Defects, *, min_length: float = 0.7, min_quality: float = 0.3
+    ) -> bool:
+        """Whether these figures are worse than ``other``'s: a new edge below
+        ``min_length``, a longer longest edge, a lower worst quality (unless the
+        longest edge got shorter and the worst quality stays at least
+        ``min_quality``), or, with the same extremes, more defects.
 
         >>> old = Defects(3, 0, 0.70, 1.60, 0.40)
         >>> Defects(5, 0, 0.70, 1.45, 0.40).worse_than(old)  # more, but shorter
@@ -296,11 +299,17 @@ class Defects:
         True
         >>> Defects(4, 0, 0.70, 1.60, 0.40).worse_than(old)  # same extremes, more
         True
+        >>> Defects(1, 0, 0.70, 1.45, 0.35).worse_than(old)  # shorter, quality above 0.3
+        False
+        >>> Defects(1, 1, 0.70, 1.45, 0.25).worse_than(old)  # shorter, quality below 0.3
+        True
         """
-        if self.max_length > other.max_length or self.min_quality < other.min_quality:
-            return True
         if self.min_length < min(min_length, other.min_length):
             return True
+        if self.max_length > other.max_length:
+            return True
+        if self.min_quality < other.min_quality:
+            return not (self.max_length < other.max_length and self.min_quality >= min_quality)
         same = self.max_length == other.max_length and self.min_quality == other.min_quality
         return same and self.count > other.count
 

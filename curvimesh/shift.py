@@ -34,12 +34,31 @@ leave one: a vertex almost on the opposite edge, its two edges near 0.7 and
 the third near 1.4; where the hexagonal lattices of the sampling
 (:mod:`curvimesh.sampling`) grown from different sides meet, triangles of
 quality 0.65 – 0.8 are left, which a move of one vertex mends.
-Its interior vertices, the one opposite the longest edge first, are tried
+Its interior vertices, the one opposite its longest edge first, are tried
 along the height (x′ = x + t R(φ) 2(x − m), m the opposite edge's midpoint);
 the move that raises the worst quality of the star most is taken, if every
 edge of the star stays in [min(``min_dist``, its shortest), max(``max_length``,
-its longest)]. Passes repeat until one moves nothing. Only the moved vertex
-and the nodes of its incident edges move; the triangles stay.
+its longest)]. In a *healthy* star (no edge longer than ``max_length``, worst
+quality at least :data:`HEALTHY_ABOVE`: the seams of the lattices, not the
+defects the clean-up stages work on), three things make the pass cheaper
+and let it reach further:
+
+* the candidates are screened first, each incident edge keeping its present
+  bend (the offset α of its middle node: a first-order model of its shortest
+  parabola, exact on a constant metric), and only the :data:`SCREEN` best are
+  searched (:func:`_screened`);
+* the vertex is also tried back towards the opposite edge (φ = π, the apex of
+  a tall triangle: :data:`QUALITY_ANGLES`);
+* a vertex hemmed in by short edges, with no move of its own, is tried again
+  after the other end u of each of its edges shorter than :data:`PUSH_BELOW`
+  is moved away from it; the pair is kept when the worst quality around the
+  two rose, else undone (:func:`_pair_move`).
+
+A try that found no move is not made again before one of the triangles it
+depends on changes (:class:`_Tries`). Passes repeat until one moves nothing,
+at most ``max_passes``, and past :data:`MIN_PASSES` only while the worst
+quality of the mesh rises. Only the moved vertices and the nodes of their
+incident edges move; the triangles stay.
 
 Beyond the paper; the smoothing step of anisotropic remeshers (MMG's
 vertex relocation, for instance) moves vertices to balance edge lengths
@@ -69,6 +88,12 @@ STEPS = (0.005, 0.01, 0.02, 0.04, 0.08, 0.12, 0.16, 0.2, 0.25)
 #: Angles φ (radians) off the long edge's direction.
 ANGLES = (0.0, 0.5, -0.5, 1.0, -1.0, 1.5, -1.5)
 
+#: Angles of a quality move off its triangle's height: :data:`ANGLES`, and back towards
+#: the opposite edge. Measured on the three toys at 1,617 vertices: the worst triangle
+#: (edges 1.40, 1.39, 0.73, quality 0.749) is mended only by moving its apex towards
+#: its short edge (0.749 → 0.801); its other corners' moves need an edge of 1.42.
+QUALITY_ANGLES = (*ANGLES, np.pi)
+
 #: Quality (4) below which a triangle's vertices are tried for a better position.
 #: Measured on the toy metric: 1.2 % of the triangles are below it at 10⁴ vertices
 #: (the seams of the sampling's hexagonal lattices); with the pass the worst
@@ -77,6 +102,25 @@ IMPROVE_BELOW = 0.8
 
 #: Fractions of the optimal offset tried for the moved vertex's edges, in order.
 BACKTRACK = (1.0, 0.5, 0.25, 0.0)
+
+#: How many candidates of a quality move, the best screened (:func:`_screened`), are
+#: searched.
+SCREEN = 4
+
+#: The worst quality (4) of the healthy stars (module docstring). Elsewhere, near
+#: singular points for instance (the centre of concentric circles), the edges' bends
+#: change fast with the vertex, and the moves are those of the plain pass: screening
+#: there too left an edge of 1.92 on a concentric field of 15:1 (bench/robustness,
+#: u21, seed 0; none above 1.40 with the full search), and the moves towards the
+#: opposite edge one of 1.55 (seed 2).
+HEALTHY_ABOVE = 0.5
+
+#: A hemmed-in vertex's edges shorter than this are lengthened by moving their other
+#: ends (:func:`_pair_move`).
+PUSH_BELOW = 0.75
+
+#: The passes always made; past them, a pass is made only while the worst quality rises.
+MIN_PASSES = 5
 
 
 @dataclass(frozen=True)
@@ -136,7 +180,7 @@ def shift_vertices(
     min_dist: float = 0.7,
     min_quality: float = 0.3,
     improve_below: float = IMPROVE_BELOW,
-    max_passes: int = 5,
+    max_passes: int = 20,
 ) -> ShiftResult:
     """Move end vertices of the edges longer than ``max_length``, then vertices of
     the triangles of quality below ``improve_below`` (module docstring); a move for a
@@ -153,9 +197,10 @@ def shift_vertices(
     length = edge_lengths(field, pts, edges, mesh.edge_mid)
     quality = quality_from(metric_areas(field, pts[mesh.triangles]), length[mesh.tri_edges])
     floor = max(min_quality, float(quality.min()))
-    fixed = mesh.boundary_vertices
-    inc = _Incidence.of(mesh)
+    state = _State(mesh, _Incidence.of(mesh), pts, length, quality, mesh.boundary_vertices)
+    tries = _Tries(len(mesh.triangles))
     shifted = passes = 0
+    worst = float(quality.min())
     while passes < max_passes:
         passes += 1
         moved = 0
@@ -163,55 +208,96 @@ def shift_vertices(
             if length[e] <= max_length:
                 break
             for v, w in (edges[e], edges[e][::-1]):
-                if fixed[v]:
+                if state.fixed[v]:
                     continue
-                star = _star(mesh, inc, int(v))
+                star = state.star(int(v))
+                key = ("edge", int(e), int(v))
+                if tries.known_to_fail(key, star.tris):
+                    continue
                 old = length[star.edges]
-                q_min = min(float(quality[star.tris].min()), floor)
                 rule = _Rule(
                     shortest=min(min_dist, float(old.min())),
                     longest=float(old.max()),
-                    q_min=q_min,
+                    q_min=min(float(quality[star.tris].min()), floor),
                     by_quality=False,
                 )
                 cand = _candidates(field, pts[v], pts[w] - pts[v])
-                got = _best_move(field, mesh, pts, length, star, int(v), cand, rule)
-                if got is None:
+                if not state.move(field, star, int(v), cand, rule):
+                    tries.failed(key)
                     continue
-                pts[v], pts[mesh.edge_mid[star.edges]], length[star.edges], quality[star.tris] = got
+                tries.moved(star.tris)
                 moved += 1
                 break
-        moved += _quality_pass(
-            field, mesh, inc, pts, length, quality, fixed, (min_dist, max_length), improve_below
-        )
+        moved += _quality_pass(field, state, tries, (min_dist, max_length), improve_below)
         shifted += moved
-        if moved == 0:
+        now = float(quality.min())
+        if moved == 0 or (passes >= MIN_PASSES and now <= worst):
             break
+        worst = now
     return ShiftResult(Mesh(pts, mesh.triangles, mesh.box), shifted, passes)
+
+
+@dataclass(frozen=True)
+class _State:
+    """The mesh being shifted: its triangles and incidence, and the arrays the moves
+    update in place: node positions, edge lengths, triangle qualities."""
+
+    mesh: Mesh
+    inc: _Incidence
+    pts: NDArray
+    length: NDArray
+    quality: NDArray
+    fixed: NDArray
+
+    def star(self, v: int) -> _Star:
+        return _star(self.mesh, self.inc, v)
+
+    def ring(self, star: _Star) -> NDArray:
+        """The triangles of the stars of a star's other ends (its own among them)."""
+        inc = self.inc
+        return np.concatenate([inc.tris[inc.start[o] : inc.start[o + 1]] for o in star.others])
+
+    def healthy(self, star: _Star, max_length: float) -> bool:
+        """Whether a star has no edge longer than ``max_length`` and a worst quality of
+        at least :data:`HEALTHY_ABOVE`."""
+        return (
+            float(self.quality[star.tris].min()) >= HEALTHY_ABOVE
+            and float(self.length[star.edges].max()) <= max_length
+        )
+
+    def saved(self, star: _Star) -> tuple:
+        """What a move of the star's vertex changes (for :meth:`restore`)."""
+        mids = self.mesh.edge_mid[star.edges]
+        return star, mids, self.pts[mids], self.length[star.edges], self.quality[star.tris]
+
+    def restore(self, saved: tuple, v: int, at: NDArray) -> None:
+        star, mids, nodes, lens, q = saved
+        self.pts[v], self.pts[mids], self.length[star.edges], self.quality[star.tris] = (
+            at, nodes, lens, q
+        )  # fmt: skip
+
+    def move(self, field: MetricField, star: _Star, v: int, cand: NDArray, rule: _Rule) -> bool:
+        """Move v to the best admissible of ``cand`` (:func:`_best_move`); whether it moved."""
+        got = _best_move(field, self, star, v, cand, rule)
+        if got is None:
+            return False
+        pts, mids = self.pts, self.mesh.edge_mid[star.edges]
+        pts[v], pts[mids], self.length[star.edges], self.quality[star.tris] = got
+        return True
 
 
 def _quality_pass(
     field: MetricField,
-    mesh: Mesh,
-    inc: _Incidence,
-    pts: NDArray,
-    length: NDArray,
-    quality: NDArray,
-    fixed: NDArray,
+    state: _State,
+    tries: _Tries,
     bounds: tuple[float, float],
     improve_below: float,
 ) -> int:
-    """One pass over the triangles of quality below ``improve_below``, worst first.
-
-    Each interior vertex of such a triangle, the one opposite its longest
-    edge first, is tried along its height (away from the opposite edge's
-    midpoint, and turned by :data:`ANGLES`); the move that raises the worst
-    quality of its star most is taken, if no edge of the star leaves
-    [min(``min_dist``, its shortest), max(``max_length``, its longest)].
-    ``pts``, ``length`` and ``quality`` are updated in place; returns the
-    number of vertices moved.
-    """
-    min_dist, max_length = bounds
+    """One pass over the triangles of quality below ``improve_below``, worst first
+    (module docstring): for each, its interior corners, the one opposite its longest
+    edge first, until one moves (:func:`_quality_move`, else :func:`_pair_move` in a
+    healthy star). Returns the number of vertices moved."""
+    mesh, pts, length, quality = state.mesh, state.pts, state.length, state.quality
     moved = 0
     for t in np.argsort(quality, kind="stable"):
         if quality[t] >= improve_below:
@@ -221,25 +307,130 @@ def _quality_pass(
         opposite = length[mesh.tri_edges[t]][[1, 2, 0]]
         for k in np.argsort(-opposite, kind="stable"):
             v = int(corners[k])
-            if fixed[v]:
+            if state.fixed[v]:
                 continue
-            star = _star(mesh, inc, v)
-            old = length[star.edges]
-            rule = _Rule(
-                shortest=min(min_dist, float(old.min())),
-                longest=max(max_length, float(old.max())),
-                q_min=float(quality[star.tris].min()),
-                by_quality=True,
-            )
+            star = state.star(v)
+            ring = state.ring(star)
+            key = ("triangle", int(t), v)
+            if tries.known_to_fail(key, ring):
+                continue
             away = pts[v] - 0.5 * (pts[corners[(k + 1) % 3]] + pts[corners[(k + 2) % 3]])
-            cand = _candidates(field, pts[v], 2.0 * away)
-            got = _best_move(field, mesh, pts, length, star, v, cand, rule)
-            if got is None:
+            if _quality_move(field, state, star, v, away, bounds):
+                tries.moved(star.tris)
+            elif state.healthy(star, bounds[1]) and _pair_move(
+                field, state, star, v, away, bounds, improve_below
+            ):
+                tries.moved(ring)
+            else:
+                tries.failed(key)
                 continue
-            pts[v], pts[mesh.edge_mid[star.edges]], length[star.edges], quality[star.tris] = got
             moved += 1
             break
     return moved
+
+
+def _quality_move(
+    field: MetricField,
+    state: _State,
+    star: _Star,
+    v: int,
+    away: NDArray,
+    bounds: tuple[float, float],
+) -> bool:
+    """Move v along ``away`` turned by :data:`ANGLES` to raise the worst quality of its
+    star, no edge of the star leaving [min(min_dist, its shortest), max(max_length,
+    its longest)]; in a healthy star (:meth:`_State.healthy`) also back towards the
+    opposite edge (:data:`QUALITY_ANGLES`), the candidates screened first
+    (:func:`_screened`). Whether it moved."""
+    min_dist, max_length = bounds
+    old = state.length[star.edges]
+    rule = _Rule(
+        shortest=min(min_dist, float(old.min())),
+        longest=max(max_length, float(old.max())),
+        q_min=float(state.quality[star.tris].min()),
+        by_quality=True,
+    )
+    if not state.healthy(star, max_length):
+        return state.move(field, star, v, _candidates(field, state.pts[v], 2.0 * away), rule)
+    cand = _candidates(field, state.pts[v], 2.0 * away, QUALITY_ANGLES)
+    return state.move(field, star, v, _screened(field, state, star, v, cand, rule), rule)
+
+
+def _pair_move(
+    field: MetricField,
+    state: _State,
+    star: _Star,
+    v: int,
+    away: NDArray,
+    bounds: tuple[float, float],
+    improve_below: float,
+) -> bool:
+    """A quality move of v hemmed in by short edges. For each edge (v, u) shorter than
+    :data:`PUSH_BELOW`, shortest first, u is moved away from v (along u − v, turned by
+    :data:`ANGLES`) to the position that makes that edge longest while every edge of
+    u's star stays in its bounds (as for a quality move) and the worst quality of u's
+    star stays above min(its own, ``improve_below``); then v is moved
+    (:func:`_quality_move`). Both are kept when the worst quality of v's ring (the
+    stars of v's neighbours, u's among them) rose, else both are undone. Whether the
+    pair moved."""
+    min_dist, max_length = bounds
+    pts, length, quality = state.pts, state.length, state.quality
+    ring = state.ring(star)
+    before = float(quality[ring].min())
+    for kk in np.argsort(length[star.edges], kind="stable"):
+        if length[star.edges[kk]] >= PUSH_BELOW:
+            break
+        u = int(star.others[kk])
+        if state.fixed[u]:
+            continue
+        su = state.star(u)
+        old = length[su.edges]
+        rule = _Rule(
+            shortest=min(min_dist, float(old.min())),
+            longest=max(max_length, float(old.max())),
+            q_min=min(float(quality[su.tris].min()), improve_below),
+            by_quality=True,
+            push=int(np.flatnonzero(su.others == v)[0]),
+        )
+        cand = _screened(field, state, su, u, _candidates(field, pts[u], pts[u] - pts[v]), rule)
+        at_u, saved_u = pts[u].copy(), state.saved(su)
+        if not state.move(field, su, u, cand, rule):
+            continue
+        at_v, saved_v = pts[v].copy(), state.saved(star)
+        if _quality_move(field, state, star, v, away, bounds):
+            if float(quality[ring].min()) > before:
+                return True
+            state.restore(saved_v, v, at_v)
+        state.restore(saved_u, u, at_u)
+    return False
+
+
+class _Tries:
+    """The tries that found no move, and when each triangle's nodes last changed.
+
+    A try (an end of a long edge, or a corner of a poor triangle) depends only on
+    the nodes of some triangles (the moved vertex's star; its ring for a pair
+    move): their positions give the candidates, the lengths, the qualities and
+    the rule's bounds, and the moves are deterministic. A try that found nothing
+    finds nothing again until a move changes one of those triangles, so it is
+    not made again before (the meshes are the same, bit for bit).
+    """
+
+    def __init__(self, n_triangles: int) -> None:
+        self.clock = 0
+        self.changed = np.zeros(n_triangles, dtype=np.int64)
+        self.failures: dict[tuple, int] = {}
+
+    def known_to_fail(self, key: tuple, tris: NDArray) -> bool:
+        when = self.failures.get(key)
+        return when is not None and int(self.changed[tris].max()) <= when
+
+    def failed(self, key: tuple) -> None:
+        self.failures[key] = self.clock
+
+    def moved(self, tris: NDArray) -> None:
+        self.clock += 1
+        self.changed[tris] = self.clock
 
 
 @dataclass(frozen=True)
@@ -249,12 +440,14 @@ class _Rule:
     ``longest`` (the longest now), and its worst quality at least ``q_min``;
     the best has the shortest longest edge. A move for quality keeps the edges
     in [shortest, longest] and raises the worst quality above ``q_min``; the
-    best has the best worst quality."""
+    best has the best worst quality, or with ``push`` >= 0 the longest incident
+    edge ``push``."""
 
     shortest: float
     longest: float
     q_min: float
     by_quality: bool
+    push: int = -1
 
     def lengths_ok(self, lens: NDArray) -> NDArray:
         top = lens.max(axis=-1)
@@ -265,11 +458,18 @@ class _Rule:
         worst = float(q.min())
         return worst > self.q_min if self.by_quality else worst >= self.q_min
 
+    def scores(self, new_len: NDArray, worst: NDArray) -> NDArray:
+        """Scores (lower is better) of quality moves from their incident edges' lengths
+        ``(k, j)`` and their stars' worst qualities ``(k,)``."""
+        return -new_len[:, self.push] if self.push >= 0 else -worst
 
-def _candidates(field: MetricField, x: NDArray, chord: NDArray) -> NDArray:
-    """Positions ``(k, 2)`` x + t R(φ) chord strictly inside the box."""
+
+def _candidates(
+    field: MetricField, x: NDArray, chord: NDArray, angles: tuple[float, ...] = ANGLES
+) -> NDArray:
+    """Positions ``(k, 2)`` x + t R(φ) chord strictly inside the box, φ in ``angles``."""
     moves = []
-    for phi in ANGLES:
+    for phi in angles:
         c, s = np.cos(phi), np.sin(phi)
         turned = np.array([c * chord[0] - s * chord[1], s * chord[0] + c * chord[1]])
         moves += [x + t * turned for t in STEPS]
@@ -279,15 +479,69 @@ def _candidates(field: MetricField, x: NDArray, chord: NDArray) -> NDArray:
     return cand[inside]
 
 
+def _star_nodes(base: NDArray, slots: NDArray, x: NDArray, mids: NDArray) -> NDArray:
+    """Nodes ``(r, s, 6, 2)`` of a star's triangles (nodes ``base`` ``(s, 6, 2)``, slots
+    of :class:`_Star`) with its vertex at each of ``x`` ``(r, 2)`` and its incident edges'
+    middle nodes at ``mids`` ``(r, j, 2)``."""
+    nodes = np.repeat(base[None], len(x), axis=0)
+    nodes[:, slots == -1] = x[:, None, :]
+    for k in range(mids.shape[1]):
+        nodes[:, slots == k] = mids[:, k][:, None, :]
+    return nodes
+
+
+def _screened(
+    field: MetricField, state: _State, star: _Star, v: int, cand: NDArray, rule: _Rule
+) -> NDArray:
+    """The :data:`SCREEN` best candidates ``(k', 2)`` of a quality move, best first, when
+    each incident edge keeps its bend: from x′ to its other end o, its middle node at
+    (x′ + o)/2 + α (o − x′)×e₃ with the edge's present offset α (the parametrisation of
+    :func:`curvimesh.geodesic.parabola_midnode`). A candidate whose star is then valid,
+    with its edges in the rule's bounds and its worst quality above the rule's, is
+    scored as :func:`_best_move` scores it; ties go to the first."""
+    k = len(cand)
+    if k == 0:
+        return cand
+    mesh, pts = state.mesh, state.pts
+    others = pts[star.others]
+    d = others - pts[v]
+    offset = pts[mesh.edge_mid[star.edges]] - 0.5 * (pts[v] + others)
+    alpha = (offset[:, 0] * d[:, 1] - offset[:, 1] * d[:, 0]) / (d * d).sum(axis=1)
+    dn = others[None] - cand[:, None]  # (k, j, 2)
+    normal = np.stack([dn[..., 1], -dn[..., 0]], axis=-1)
+    mid = 0.5 * (cand[:, None] + others[None]) + alpha[None, :, None] * normal
+    nodes = _star_nodes(pts[mesh.triangles[star.tris]], star.slots, cand, mid)
+    ok = valid_exact(nodes.reshape(-1, 6, 2)).reshape(k, -1).all(axis=1)
+    j = len(star.edges)
+    new_len = edge_lengths_fast(
+        field, np.repeat(cand, j, axis=0), np.tile(others, (k, 1)), mid.reshape(-1, 2),
+        remember=False,
+    ).reshape(k, j)  # fmt: skip
+    rows = np.flatnonzero(ok & rule.lengths_ok(new_len))
+    worst = _worst_qualities(field, state, star, nodes[rows], new_len[rows])
+    better = worst > rule.q_min
+    rows, worst = rows[better], worst[better]
+    order = np.lexsort((rows, rule.scores(new_len[rows], worst)))
+    return cand[rows[order[:SCREEN]]]
+
+
+def _worst_qualities(
+    field: MetricField, state: _State, star: _Star, nodes: NDArray, new_len: NDArray
+) -> NDArray:
+    """The worst quality (4) ``(r,)`` of a star with nodes ``(r, s, 6, 2)`` and incident
+    edges' lengths ``(r, j)``, its other edges keeping theirs."""
+    r = len(nodes)
+    if r == 0:
+        return np.empty(0)
+    inc = star.slots[:, 3:]  # (s, 3): incident edge k, or −2
+    lens = np.repeat(state.length[state.mesh.tri_edges[star.tris]][None], r, axis=0)
+    lens[:, inc >= 0] = new_len[:, inc[inc >= 0]]
+    areas = metric_areas(field, nodes.reshape(-1, 6, 2), remember=False)
+    return quality_from(areas, lens.reshape(-1, 3)).reshape(r, -1).min(axis=1)
+
+
 def _best_move(
-    field: MetricField,
-    mesh: Mesh,
-    pts: NDArray,
-    length: NDArray,
-    star: _Star,
-    v: int,
-    cand: NDArray,
-    rule: _Rule,
+    field: MetricField, state: _State, star: _Star, v: int, cand: NDArray, rule: _Rule
 ) -> tuple[NDArray, NDArray, NDArray, NDArray] | None:
     """The best admissible position of v among ``cand`` (module docstring, ``rule``):
     v's new position, its incident edges' new middle nodes ``(j, 2)`` and lengths
@@ -296,6 +550,7 @@ def _best_move(
     k, j = len(cand), len(star.edges)
     if k == 0:
         return None
+    mesh, pts, length = state.mesh, state.pts, state.length
     others = pts[star.others]
     a = np.repeat(cand, j, axis=0)
     b = np.tile(others, (k, 1))
@@ -313,10 +568,7 @@ def _best_move(
         if rows.size == 0:
             break
         mid = straight[rows] + frac * (optimal[rows] - straight[rows])  # (r, j, 2)
-        nodes = np.repeat(base[None], len(rows), axis=0)  # (r, s, 6, 2)
-        nodes[:, star.slots == -1] = cand[rows][:, None, :]
-        for kk in range(j):
-            nodes[:, star.slots == kk] = mid[:, kk][:, None, :]
+        nodes = _star_nodes(base, star.slots, cand[rows], mid)  # (r, s, 6, 2)
         ok = valid_exact(nodes.reshape(-1, 6, 2)).reshape(len(rows), -1).all(axis=1)
         todo[rows[ok]] = False
         if not ok.any():
@@ -330,15 +582,13 @@ def _best_move(
             remember=False,
         ).reshape(len(rows), j)
         good = np.flatnonzero(rule.lengths_ok(new_len))
-        if rule.by_quality and good.size:
-            lens = np.repeat(lens0[None], good.size, axis=0)
-            lens[:, inc >= 0] = new_len[good][:, inc[inc >= 0]]
-            areas = metric_areas(field, nodes[good].reshape(-1, 6, 2), remember=False)
-            areas = areas.reshape(good.size, -1)
-            scores = -quality_from(areas.reshape(-1), lens.reshape(-1, 3)).reshape(good.size, -1)
-            score = scores.max(axis=1)
+        if rule.by_quality:
+            worst = _worst_qualities(field, state, star, nodes[good], new_len[good])
+            if rule.push >= 0:  # only the moves keeping the quality push
+                good, worst = good[worst > rule.q_min], worst[worst > rule.q_min]
+            score = rule.scores(new_len[good], worst)
         else:
-            score = new_len[good].max(axis=1) if good.size else np.empty(0)
+            score = new_len[good].max(axis=1)
         for r, sc in zip(good, score, strict=True):
             found.append((float(sc), int(rows[r]), nodes[r], mid[r]))
     pairs = np.column_stack([np.zeros(j, dtype=int), np.arange(1, j + 1)])

@@ -186,9 +186,9 @@ def test_the_repeated_passes_leave_no_worse_a_mesh_than_one_pass():
     """Same cloud and curved mesh, the swap stage with and without the repeats: the
     repeats never raise the longest edge, lower the worst quality or add a short edge."""
     fld = load_metric(METRICS / "quartic2.yaml")
-    opt = pipeline.AdaptOptions(seed=2)
+    opt = pipeline.AdaptOptions(seed=3)  # one pass leaves edges up to 2.75 long
     p2 = pipeline.curve(fld, pipeline.triangulate(pipeline.sample(fld, opt), fld, opt), opt)
-    once = pipeline.swap(fld, p2, pipeline.AdaptOptions(seed=2, repeat=False))
+    once = pipeline.swap(fld, p2, pipeline.AdaptOptions(seed=3, repeat=False))
     again = pipeline.swap(fld, p2, opt)
     assert once.passes == 0 and again.passes >= 1
     before, after = pipeline.defects(fld, once.mesh), pipeline.defects(fld, again.mesh)

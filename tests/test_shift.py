@@ -8,6 +8,7 @@ import numpy as np
 from scipy.spatial import Delaunay
 
 from curvimesh import adapt as pipeline
+from curvimesh import shift
 from curvimesh.bezier import valid_exact
 from curvimesh.mesh import Mesh, signed_areas, to_p2_straight
 from curvimesh.metric import load_metric, load_metric_text
@@ -36,6 +37,15 @@ def displaced(mesh: Mesh, v: int, by: np.ndarray) -> Mesh:
     pts = np.array(p1.points)
     pts[v] += by
     return to_p2_straight(Mesh(pts, p1.triangles, mesh.box))
+
+
+def star_mesh(points: list[tuple[float, float]]) -> Mesh:
+    """The straight P2 Delaunay mesh of ``points`` moved to (3, 3), in the box of EUCLID."""
+    pts = np.asarray(points, dtype=float) + 3.0
+    tris = Delaunay(pts).simplices
+    area = signed_areas(pts, tris)
+    tris[area < 0] = tris[area < 0][:, [0, 2, 1]]
+    return to_p2_straight(Mesh(pts, tris, (-0.5, -0.5, 6.5, 6.5)))
 
 
 def lengths(fld, mesh: Mesh) -> np.ndarray:
@@ -156,3 +166,108 @@ def test_the_triangles_below_0_8_of_the_toy_mesh_are_raised():
     assert q1.min() > q0.min() and (q1 < 0.8).sum() < (q0 < 0.8).sum()
     assert len1.min() >= 0.7 - 1e-9 and len1.max() <= 1.4 + 1e-9
     assert valid_exact(np.asarray(res.mesh.points)[res.mesh.triangles]).all()
+
+
+def test_the_apex_of_a_tall_triangle_is_moved_towards_its_base(monkeypatch):
+    # one free vertex v at the origin in a ring of fixed ones, at distance 1 but for a
+    # and b below it, 0.72 apart and 1.38 from v: (v, a, b) is tall (quality 0.77)
+    ring = [(np.cos(t), np.sin(t)) for t in np.radians([-30, 30, 90, 150, 210])]
+    mesh = star_mesh([(0.0, 0.0), (-0.36, -1.33), (0.36, -1.33), *ring])
+    fld = load_metric_text(EUCLID)
+    fixed = mesh.boundary_vertices[:8]
+    assert not fixed[0] and fixed[1:].all()
+    q0 = _quality(fld, mesh)
+    assert 0.76 < q0.min() < 0.78
+    res = shift_vertices(fld, mesh, max_length=1.8)  # 1.8: the quality pass alone acts
+    new = np.asarray(res.mesh.points)
+    assert new[0, 1] < 3.0 - 0.2  # down, towards ab
+    assert _quality(fld, res.mesh).min() > 0.85
+    after = lengths(fld, res.mesh)
+    assert after.min() >= 0.72 - 1e-9 and after.max() < 1.378
+    assert valid_exact(new[res.mesh.triangles]).all()
+    # along the height and up to 86 degrees off it (the moves for flat triangles), no
+    # position raises the worst quality
+    monkeypatch.setattr(shift, "QUALITY_ANGLES", shift.ANGLES)
+    assert shift_vertices(fld, mesh, max_length=1.8).shifted == 0
+
+
+def test_a_hemmed_in_vertex_moves_after_its_neighbour(monkeypatch):
+    # v at the origin, 0.72 from a and b below it (the triangle (v, a, b) of quality
+    # 0.67), and 0.71 below u: moving v up, away from ab, shortens (v, u) below 0.7.
+    # u's other edges are 0.99 - 1.29 long, so u can move up first
+    below = [(-0.6, -0.4), (0.6, -0.4), (-1.1, 0.45), (1.1, 0.45)]
+    mesh = star_mesh([(0, 0), (0, 0.71), *below, (-0.75, 1.35), (0.75, 1.35), (0, 2.0)])
+    fld = load_metric_text(EUCLID)
+    fixed = mesh.boundary_vertices[:9]
+    assert not fixed[:2].any() and fixed[2:].all()
+    q0 = _quality(fld, mesh)
+    assert 0.66 < q0.min() < 0.68
+    res = shift_vertices(fld, mesh)
+    new = np.asarray(res.mesh.points)
+    assert new[1, 1] > 3.71 + 0.1 and new[0, 1] > 3.0 + 0.1  # u, then v, up
+    assert _quality(fld, res.mesh).min() > 0.8
+    after = lengths(fld, res.mesh)
+    assert after.min() >= 0.7 - 1e-9 and after.max() <= 1.4
+    assert valid_exact(new[res.mesh.triangles]).all()
+    # each alone: v barely moves
+    monkeypatch.setattr(shift, "PUSH_BELOW", 0.0)
+    alone = shift_vertices(fld, mesh)
+    assert _quality(fld, alone.mesh).min() < 0.7
+    assert np.asarray(alone.mesh.points)[1].tolist() == [3.0, 3.71]
+
+
+def test_screening_is_exact_on_a_constant_metric():
+    # in a constant metric the shortest parabolas are straight: the screening's model
+    # (each edge keeps its bend, here none) is exact, and the move found among the
+    # screened candidates is the one found among all of them
+    fld = load_metric_text(EUCLID)
+    mesh, v = lattice()
+    pts = np.asarray(mesh.points)
+    tri = next(t for t in mesh.triangles[:, :3] if v in t and pts[t, 1].max() <= pts[v, 1] + 1e-9)
+    a, b = (u for u in tri if u != v)
+    foot = 0.5 * (pts[a] + pts[b])
+    bad = displaced(mesh, v, 0.7 * (foot - pts[v]))
+    p = np.array(bad.points)
+    ln = lengths(fld, bad)
+    q = quality_from(metric_areas(fld, p[bad.triangles]), ln[bad.tri_edges])
+    state = shift._State(bad, shift._Incidence.of(bad), p, ln, q, bad.boundary_vertices)
+    star = state.star(v)
+    rule = shift._Rule(
+        shortest=min(0.7, float(ln[star.edges].min())),
+        longest=max(1.4, float(ln[star.edges].max())),
+        q_min=float(q[star.tris].min()),
+        by_quality=True,
+    )
+    cand = shift._candidates(fld, p[v], 2.0 * (p[v] - foot), shift.QUALITY_ANGLES)
+    screened = shift._screened(fld, state, star, v, cand, rule)
+    assert 1 <= len(screened) <= shift.SCREEN < len(cand)
+    full = shift._best_move(fld, state, star, v, cand, rule)
+    best = shift._best_move(fld, state, star, v, screened, rule)
+    assert full is not None and best is not None
+    np.testing.assert_array_equal(best[0], full[0])
+    np.testing.assert_array_equal(screened[0], full[0])
+
+
+def test_a_try_that_found_nothing_is_not_made_again(monkeypatch):
+    # the quartic example without the hexagons of the sampling: 15 tries over 9 passes
+    # are found to fail again. The same mesh, bit for bit, as when every try is made at
+    # every pass, with fewer searches
+    fld = load_metric(METRICS / "quartic.yaml")
+    opt = pipeline.AdaptOptions(hexagons=False, shift=False, remove=False, repeat=False)
+    mesh = pipeline.adapt(fld, opt).mesh
+    calls = []
+    best_move = shift._best_move
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return best_move(*args, **kwargs)
+
+    monkeypatch.setattr(shift, "_best_move", counted)
+    res = shift_vertices(fld, mesh)
+    with_memo = len(calls)
+    monkeypatch.setattr(shift._Tries, "known_to_fail", lambda self, key, tris: False)
+    calls.clear()
+    again = shift_vertices(fld, mesh)
+    assert np.asarray(again.mesh.points).tobytes() == np.asarray(res.mesh.points).tobytes()
+    assert again.shifted == res.shifted and again.passes == res.passes
+    assert len(calls) > with_memo
