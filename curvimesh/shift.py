@@ -204,8 +204,8 @@ def shift_vertices(
     while passes < max_passes:
         passes += 1
         moved = 0
-        for e in np.argsort(-length, kind="stable"):
-            if length[e] <= max_length:
+        for e in _ascending(-length, length > max_length):
+            if length[e] <= max_length:  # shortened by a move of this pass
                 break
             for v, w in (edges[e], edges[e][::-1]):
                 if state.fixed[v]:
@@ -299,8 +299,8 @@ def _quality_pass(
     healthy star). Returns the number of vertices moved."""
     mesh, pts, length, quality = state.mesh, state.pts, state.length, state.quality
     moved = 0
-    for t in np.argsort(quality, kind="stable"):
-        if quality[t] >= improve_below:
+    for t in _ascending(quality, quality < improve_below):
+        if quality[t] >= improve_below:  # raised by a move of this pass
             break
         corners = mesh.triangles[t, :3]
         # vertex k is opposite local edge (k + 1) % 3 (edges 0-1, 1-2, 2-0)
@@ -342,15 +342,9 @@ def _quality_move(
     its longest)]; in a healthy star (:meth:`_State.healthy`) also back towards the
     opposite edge (:data:`QUALITY_ANGLES`), the candidates screened first
     (:func:`_screened`). Whether it moved."""
-    min_dist, max_length = bounds
-    old = state.length[star.edges]
-    rule = _Rule(
-        shortest=min(min_dist, float(old.min())),
-        longest=max(max_length, float(old.max())),
-        q_min=float(state.quality[star.tris].min()),
-        by_quality=True,
-    )
-    if not state.healthy(star, max_length):
+    worst = float(state.quality[star.tris].min())
+    rule = _Rule.for_quality(state.length[star.edges], worst, bounds)
+    if not state.healthy(star, bounds[1]):
         return state.move(field, star, v, _candidates(field, state.pts[v], 2.0 * away), rule)
     cand = _candidates(field, state.pts[v], 2.0 * away, QUALITY_ANGLES)
     return state.move(field, star, v, _screened(field, state, star, v, cand, rule), rule)
@@ -373,7 +367,6 @@ def _pair_move(
     (:func:`_quality_move`). Both are kept when the worst quality of v's ring (the
     stars of v's neighbours, u's among them) rose, else both are undone. Whether the
     pair moved."""
-    min_dist, max_length = bounds
     pts, length, quality = state.pts, state.length, state.quality
     ring = state.ring(star)
     before = float(quality[ring].min())
@@ -384,14 +377,9 @@ def _pair_move(
         if state.fixed[u]:
             continue
         su = state.star(u)
-        old = length[su.edges]
-        rule = _Rule(
-            shortest=min(min_dist, float(old.min())),
-            longest=max(max_length, float(old.max())),
-            q_min=min(float(quality[su.tris].min()), improve_below),
-            by_quality=True,
-            push=int(np.flatnonzero(su.others == v)[0]),
-        )
+        q_min = min(float(quality[su.tris].min()), improve_below)
+        push = int(np.flatnonzero(su.others == v)[0])
+        rule = _Rule.for_quality(length[su.edges], q_min, bounds, push=push)
         cand = _screened(field, state, su, u, _candidates(field, pts[u], pts[u] - pts[v]), rule)
         at_u, saved_u = pts[u].copy(), state.saved(su)
         if not state.move(field, su, u, cand, rule):
@@ -403,6 +391,14 @@ def _pair_move(
             state.restore(saved_v, v, at_v)
         state.restore(saved_u, u, at_u)
     return False
+
+
+def _ascending(key: NDArray, mask: NDArray) -> NDArray:
+    """The indices where ``mask`` holds, by ascending ``key`` (ties by index): the prefix
+    of a stable argsort of ``key`` where the mask holds of a prefix, without sorting
+    the rest (a pass's sort of every edge and triangle took 30 ms at 10⁵ vertices)."""
+    rows = np.flatnonzero(mask)
+    return rows[np.argsort(key[rows], kind="stable")]
 
 
 class _Tries:
@@ -448,6 +444,17 @@ class _Rule:
     q_min: float
     by_quality: bool
     push: int = -1
+
+    @classmethod
+    def for_quality(
+        cls, old: NDArray, q_min: float, bounds: tuple[float, float], push: int = -1
+    ) -> _Rule:
+        """The rule of a quality move of a star whose incident edges are ``old`` long:
+        edges kept in [min(min_dist, shortest), max(max_length, longest)] (``bounds`` is
+        (min_dist, max_length)), the worst quality raised above ``q_min``."""
+        min_dist, max_length = bounds
+        shortest, longest = min(min_dist, float(old.min())), max(max_length, float(old.max()))
+        return cls(shortest, longest, q_min, by_quality=True, push=push)
 
     def lengths_ok(self, lens: NDArray) -> NDArray:
         top = lens.max(axis=-1)

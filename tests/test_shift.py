@@ -48,6 +48,17 @@ def star_mesh(points: list[tuple[float, float]]) -> Mesh:
     return to_p2_straight(Mesh(pts, tris, (-0.5, -0.5, 6.5, 6.5)))
 
 
+def pushed_down(fraction: float) -> tuple[Mesh, int, np.ndarray]:
+    """The lattice with its middle vertex v moved ``fraction`` of the way down its height
+    towards the edge ab below it; v and the midpoint of ab."""
+    mesh, v = lattice()
+    pts = np.asarray(mesh.points)
+    tri = next(t for t in mesh.triangles[:, :3] if v in t and pts[t, 1].max() <= pts[v, 1] + 1e-9)
+    a, b = (u for u in tri if u != v)
+    foot = 0.5 * (pts[a] + pts[b])
+    return displaced(mesh, v, fraction * (foot - pts[v])), v, foot
+
+
 def lengths(fld, mesh: Mesh) -> np.ndarray:
     return edge_lengths(fld, np.asarray(mesh.points), mesh.edges, mesh.edge_mid)
 
@@ -128,12 +139,7 @@ def test_a_vertex_pushed_onto_an_edge_is_moved_off_it():
     # opposite it: the triangle (v, a, b) is flat (q 0.24) and no edge is longer
     # than 1.71; with max_length 1.8 only the quality pass can act
     fld = load_metric_text(EUCLID)
-    mesh, v = lattice()
-    pts = np.asarray(mesh.points)
-    tri = next(t for t in mesh.triangles[:, :3] if v in t and pts[t, 1].max() <= pts[v, 1] + 1e-9)
-    a, b = (u for u in tri if u != v)
-    foot = 0.5 * (pts[a] + pts[b])
-    bad = displaced(mesh, v, 0.88 * (foot - pts[v]))
+    bad, v, foot = pushed_down(0.88)
     q0 = _quality(fld, bad)
     assert 0.2 < q0.min() < 0.3
     res = shift_vertices(fld, bad, max_length=1.8)
@@ -221,23 +227,13 @@ def test_screening_is_exact_on_a_constant_metric():
     # (each edge keeps its bend, here none) is exact, and the move found among the
     # screened candidates is the one found among all of them
     fld = load_metric_text(EUCLID)
-    mesh, v = lattice()
-    pts = np.asarray(mesh.points)
-    tri = next(t for t in mesh.triangles[:, :3] if v in t and pts[t, 1].max() <= pts[v, 1] + 1e-9)
-    a, b = (u for u in tri if u != v)
-    foot = 0.5 * (pts[a] + pts[b])
-    bad = displaced(mesh, v, 0.7 * (foot - pts[v]))
+    bad, v, foot = pushed_down(0.7)
     p = np.array(bad.points)
     ln = lengths(fld, bad)
     q = quality_from(metric_areas(fld, p[bad.triangles]), ln[bad.tri_edges])
     state = shift._State(bad, shift._Incidence.of(bad), p, ln, q, bad.boundary_vertices)
     star = state.star(v)
-    rule = shift._Rule(
-        shortest=min(0.7, float(ln[star.edges].min())),
-        longest=max(1.4, float(ln[star.edges].max())),
-        q_min=float(q[star.tris].min()),
-        by_quality=True,
-    )
+    rule = shift._Rule.for_quality(ln[star.edges], float(q[star.tris].min()), (0.7, 1.4))
     cand = shift._candidates(fld, p[v], 2.0 * (p[v] - foot), shift.QUALITY_ANGLES)
     screened = shift._screened(fld, state, star, v, cand, rule)
     assert 1 <= len(screened) <= shift.SCREEN < len(cand)
