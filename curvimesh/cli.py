@@ -45,8 +45,18 @@ class _Terminated(BaseException):
     """Raised by the SIGTERM handler so that cleanup runs as for Ctrl-C."""
 
 
+#: The signals received while a command runs (SIGINT, SIGTERM), most recent last.
+_RECEIVED: list[int] = []
+
+
 def _on_sigterm(signum, frame):  # pragma: no cover - exercised through a subprocess
+    _RECEIVED.append(signal.SIGTERM)
     raise _Terminated()
+
+
+def _on_sigint(signum, frame):  # pragma: no cover - exercised through a subprocess
+    _RECEIVED.append(signal.SIGINT)
+    signal.default_int_handler(signum, frame)
 
 
 class Context:
@@ -116,6 +126,19 @@ class _LostSignals:
             timer.cancel()
 
 
+def _signalled(signum: int) -> None:
+    """Exit as for the signal ``signum`` (130 for SIGINT, 143 for SIGTERM) after another
+    exception came up in place of its KeyboardInterrupt or _Terminated: compiled code
+    that calls back into Python does not always pass on an exception raised there.
+    Numba's unboxing of a function argument, interrupted while it unpickles the
+    signature, calls numba's ``_get_wrapper_address`` without it and raises a
+    TypeError (seen in ``test_interrupt_leaves_nothing``: exit 1, "internal error")."""
+    _quiet_finalizers()
+    if signum == signal.SIGINT:
+        _fail("interrupted", 130)
+    _fail("terminated", 143)
+
+
 def command(fn: Callable) -> Callable:
     """Run a command body, turning our errors into one line and an exit code."""
 
@@ -125,7 +148,9 @@ def command(fn: Callable) -> Callable:
     def wrapper(*args: Any, verbose: bool, quiet: bool, **kwargs: Any) -> None:
         ctx = Context()
         ctx.verbose, ctx.quiet = verbose, quiet
+        _RECEIVED.clear()
         old = signal.signal(signal.SIGTERM, _on_sigterm)
+        old_int = signal.signal(signal.SIGINT, _on_sigint)
         old_hook = sys.unraisablehook
         sys.unraisablehook = hook = _LostSignals(old_hook)
         try:
@@ -148,12 +173,15 @@ def command(fn: Callable) -> Callable:
                 traceback.print_exc()
             _fail(f"{type(exc).__name__}: the work is too large", 1)
         except Exception as exc:  # a bug of ours: still one line, traceback with -v
+            if _RECEIVED:  # the signal's exception, replaced (see _signalled)
+                _signalled(_RECEIVED[-1])
             if verbose:
                 traceback.print_exc()
             msg = str(exc).splitlines()[0] if str(exc) else ""
             _fail(f"internal error ({type(exc).__name__}: {msg}); run with -v for details", 1)
         finally:
             signal.signal(signal.SIGTERM, old)
+            signal.signal(signal.SIGINT, old_int)
             hook.cancel()
             if sys.unraisablehook is hook:  # not replaced by _quiet_finalizers
                 sys.unraisablehook = old_hook

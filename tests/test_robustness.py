@@ -590,6 +590,44 @@ def test_a_signal_that_lands_in_a_finalizer_is_not_lost(tmp_path, exc, code):
     assert proc.stderr.count("\n") == 1 and "curvimesh: error:" in proc.stderr
 
 
+REPLACED_INTERRUPT = """
+import os
+import signal
+import time
+
+import click
+
+from curvimesh.cli import command
+
+
+@click.command()
+@command
+def main(ctx):
+    try:
+        os.kill(os.getpid(), signal.{sig})
+        time.sleep(5)
+    except BaseException:  # as compiled code that calls back into Python may do
+        raise TypeError("missing 1 required positional argument") from None
+    print("finished")
+
+
+main()
+"""
+
+
+@pytest.mark.parametrize(("sig", "code"), [("SIGINT", 130), ("SIGTERM", 143)])
+def test_a_signal_whose_exception_is_replaced_still_ends_the_command(tmp_path, sig, code):
+    # numba's unboxing of a function argument, interrupted while it unpickles the
+    # signature, calls _get_wrapper_address without it: a TypeError came up instead
+    # of the signal's exception and the command exited 1 with "internal error"
+    script = tmp_path / "replaced.py"
+    script.write_text(REPLACED_INTERRUPT.format(sig=sig))
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == code, proc.stderr
+    assert "finished" not in proc.stdout and "internal error" not in proc.stderr
+    assert proc.stderr.count("\n") == 1 and "curvimesh: error:" in proc.stderr
+
+
 @pytest.mark.parametrize(("sig", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_interrupt_leaves_nothing(tmp_path, sig, code):
     metric = tmp_path / "in" / "fine.yaml"
