@@ -150,7 +150,9 @@ def command(fn: Callable) -> Callable:
         ctx.verbose, ctx.quiet = verbose, quiet
         _RECEIVED.clear()
         old = signal.signal(signal.SIGTERM, _on_sigterm)
-        old_int = signal.signal(signal.SIGINT, _on_sigint)
+        old_int = signal.getsignal(signal.SIGINT)
+        if old_int is signal.default_int_handler:  # not where Ctrl-C is ignored (`cmd &`)
+            signal.signal(signal.SIGINT, _on_sigint)
         old_hook = sys.unraisablehook
         sys.unraisablehook = hook = _LostSignals(old_hook)
         try:
@@ -181,7 +183,8 @@ def command(fn: Callable) -> Callable:
             _fail(f"internal error ({type(exc).__name__}: {msg}); run with -v for details", 1)
         finally:
             signal.signal(signal.SIGTERM, old)
-            signal.signal(signal.SIGINT, old_int)
+            if old_int is signal.default_int_handler:
+                signal.signal(signal.SIGINT, old_int)
             hook.cancel()
             if sys.unraisablehook is hook:  # not replaced by _quiet_finalizers
                 sys.unraisablehook = old_hook
