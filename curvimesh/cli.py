@@ -127,12 +127,13 @@ class _LostSignals:
 
 
 def _signalled(signum: int) -> None:
-    """Exit as for the signal ``signum`` (130 for SIGINT, 143 for SIGTERM) after another
-    exception came up in place of its KeyboardInterrupt or _Terminated: compiled code
-    that calls back into Python does not always pass on an exception raised there.
-    Numba's unboxing of a function argument, interrupted while it unpickles the
-    signature, calls numba's ``_get_wrapper_address`` without it and raises a
-    TypeError (seen in ``test_interrupt_leaves_nothing``: exit 1, "internal error")."""
+    """Exit as for the signal ``signum``: 130 for SIGINT, 143 for SIGTERM, on its
+    KeyboardInterrupt or _Terminated, or on another exception that came up in their
+    place (compiled code that calls back into Python does not always pass on an
+    exception raised there: numba's unboxing of a function argument, interrupted
+    while it unpickles the signature, calls numba's ``_get_wrapper_address`` without
+    it and raises a TypeError; seen in ``test_interrupt_leaves_nothing``, exit 1,
+    "internal error")."""
     _quiet_finalizers()
     if signum == signal.SIGINT:
         _fail("interrupted", 130)
@@ -165,11 +166,9 @@ def command(fn: Callable) -> Callable:
                 traceback.print_exc()
             _fail(str(exc), exc.exit_code)
         except KeyboardInterrupt:
-            _quiet_finalizers()
-            _fail("interrupted", 130)
+            _signalled(signal.SIGINT)
         except _Terminated:
-            _quiet_finalizers()
-            _fail("terminated", 143)
+            _signalled(signal.SIGTERM)
         except (MemoryError, RecursionError) as exc:
             if verbose:
                 traceback.print_exc()

@@ -68,6 +68,7 @@ swaps (``--no-shift`` turns it off).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -205,7 +206,7 @@ def shift_vertices(
         passes += 1
         moved = 0
         for e in _ascending(-length, length > max_length):
-            if length[e] <= max_length:  # shortened by a move of this pass
+            if length[e] <= max_length:
                 break
             for v, w in (edges[e], edges[e][::-1]):
                 if state.fixed[v]:
@@ -265,25 +266,26 @@ class _State:
             and float(self.length[star.edges].max()) <= max_length
         )
 
-    def saved(self, star: _Star) -> tuple:
-        """What a move of the star's vertex changes (for :meth:`restore`)."""
+    def saved(self, star: _Star, v: int) -> tuple:
+        """What a move of v, the star's vertex, changes, as :meth:`write` takes it."""
         mids = self.mesh.edge_mid[star.edges]
-        return star, mids, self.pts[mids], self.length[star.edges], self.quality[star.tris]
-
-    def restore(self, saved: tuple, v: int, at: NDArray) -> None:
-        star, mids, nodes, lens, q = saved
-        self.pts[v], self.pts[mids], self.length[star.edges], self.quality[star.tris] = (
-            at, nodes, lens, q
+        return (
+            star, v, self.pts[v].copy(), self.pts[mids], self.length[star.edges],
+            self.quality[star.tris],
         )  # fmt: skip
+
+    def write(self, star: _Star, v: int, at: NDArray, mids: NDArray, lens: NDArray, q: NDArray):
+        """v at ``at``, its incident edges' middle nodes ``mids`` and lengths ``lens``, its
+        star's qualities ``q``."""
+        self.pts[v], self.pts[self.mesh.edge_mid[star.edges]] = at, mids
+        self.length[star.edges], self.quality[star.tris] = lens, q
 
     def move(self, field: MetricField, star: _Star, v: int, cand: NDArray, rule: _Rule) -> bool:
         """Move v to the best admissible of ``cand`` (:func:`_best_move`); whether it moved."""
         got = _best_move(field, self, star, v, cand, rule)
-        if got is None:
-            return False
-        pts, mids = self.pts, self.mesh.edge_mid[star.edges]
-        pts[v], pts[mids], self.length[star.edges], self.quality[star.tris] = got
-        return True
+        if got is not None:
+            self.write(star, v, *got)
+        return got is not None
 
 
 def _quality_pass(
@@ -300,7 +302,7 @@ def _quality_pass(
     mesh, pts, length, quality = state.mesh, state.pts, state.length, state.quality
     moved = 0
     for t in _ascending(quality, quality < improve_below):
-        if quality[t] >= improve_below:  # raised by a move of this pass
+        if quality[t] >= improve_below:
             break
         corners = mesh.triangles[t, :3]
         # vertex k is opposite local edge (k + 1) % 3 (edges 0-1, 1-2, 2-0)
@@ -318,7 +320,7 @@ def _quality_pass(
             if _quality_move(field, state, star, v, away, bounds):
                 tries.moved(star.tris)
             elif state.healthy(star, bounds[1]) and _pair_move(
-                field, state, star, v, away, bounds, improve_below
+                field, state, star, ring, v, away, bounds, improve_below
             ):
                 tries.moved(ring)
             else:
@@ -354,6 +356,7 @@ def _pair_move(
     field: MetricField,
     state: _State,
     star: _Star,
+    ring: NDArray,
     v: int,
     away: NDArray,
     bounds: tuple[float, float],
@@ -366,9 +369,8 @@ def _pair_move(
     star stays above min(its own, ``improve_below``); then v is moved
     (:func:`_quality_move`). Both are kept when the worst quality of v's ring (the
     stars of v's neighbours, u's among them) rose, else both are undone. Whether the
-    pair moved."""
+    pair moved. ``ring`` is v's ring (:meth:`_State.ring`)."""
     pts, length, quality = state.pts, state.length, state.quality
-    ring = state.ring(star)
     before = float(quality[ring].min())
     for kk in np.argsort(length[star.edges], kind="stable"):
         if length[star.edges[kk]] >= PUSH_BELOW:
@@ -381,24 +383,34 @@ def _pair_move(
         push = int(np.flatnonzero(su.others == v)[0])
         rule = _Rule.for_quality(length[su.edges], q_min, bounds, push=push)
         cand = _screened(field, state, su, u, _candidates(field, pts[u], pts[u] - pts[v]), rule)
-        at_u, saved_u = pts[u].copy(), state.saved(su)
+        saved_u = state.saved(su, u)
         if not state.move(field, su, u, cand, rule):
             continue
-        at_v, saved_v = pts[v].copy(), state.saved(star)
+        saved_v = state.saved(star, v)
         if _quality_move(field, state, star, v, away, bounds):
             if float(quality[ring].min()) > before:
                 return True
-            state.restore(saved_v, v, at_v)
-        state.restore(saved_u, u, at_u)
+            state.write(*saved_v)
+        state.write(*saved_u)
     return False
 
 
-def _ascending(key: NDArray, mask: NDArray) -> NDArray:
-    """The indices where ``mask`` holds, by ascending ``key`` (ties by index): the prefix
-    of a stable argsort of ``key`` where the mask holds of a prefix, without sorting
-    the rest (a pass's sort of every edge and triangle took 30 ms at 10⁵ vertices)."""
+def _ascending(key: NDArray, mask: NDArray) -> Iterator[int]:
+    """The indices of ``key`` by ascending value, ties by index (a stable argsort of
+    ``key`` as it is now), where ``mask`` holds of a prefix of that order: the rows of
+    the mask are sorted alone, and the rest only if the caller goes past the first of
+    them (a pass's sort of every edge and triangle took 30 ms at 10⁵ vertices; a pass
+    nearly always stops at the mask's end)."""
+    key = np.array(key)  # the order is that of now, the caller's array may change
     rows = np.flatnonzero(mask)
-    return rows[np.argsort(key[rows], kind="stable")]
+    yield from rows[np.argsort(key[rows], kind="stable")].tolist()
+    rest = np.flatnonzero(~mask)
+    if rest.size == 0:
+        return
+    first = int(rest[np.argmin(key[rest])])  # the first of the minima: ties by index
+    yield first
+    order = rest[np.argsort(key[rest], kind="stable")]
+    yield from order[order != first].tolist()
 
 
 class _Tries:
