@@ -39,7 +39,6 @@ import re
 import sys
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from types import FunctionType
 
 # GNU OpenMP (numba's threading layer where libgomp is found) spins while it waits
 # for its threads: with another process on the other core, adapt of the 9,746-vertex
@@ -77,28 +76,34 @@ SEARCH_PARALLEL_ROWS = 64
 def _row_kernel(
     py: Callable | None = None, *, min_rows: int | None = None, rows_arg: int = 1
 ) -> Callable:
-    """A kernel whose rows (``prange``) are independent, compiled twice: serial, and
-    parallel for calls of at least ``min_rows`` rows (default :data:`PARALLEL_ROWS`;
-    same results).
+    """A kernel whose rows (``prange``) are independent, compiled once with
+    ``parallel=True`` and run on numba's threads for calls of at least ``min_rows``
+    rows (default :data:`PARALLEL_ROWS`), on the calling thread alone below (same
+    results).
+
+    One compiled variant, not a serial and a parallel one: every variant a run
+    calls is loaded from numba's cache at its first call (about 5 ms each, 0.1 s of
+    a run for the twins), against about 3 µs more per small call.
 
     The rows are those of argument ``rows_arg`` (default the second, after the metric
     function)."""
     if py is None:
         return lambda f: _row_kernel(f, min_rows=min_rows, rows_arg=rows_arg)
-    serial = njit(**_JIT)(py)
-    # a twin of its own name: numba's disk cache indexes functions by qualified name
-    # and signature, so the two variants of one function would load each other's code
-    twin = FunctionType(py.__code__, py.__globals__, f"{py.__name__}_parallel")
-    twin.__qualname__ = f"{py.__qualname__}_parallel"
-    parallel = njit(parallel=True, **_JIT)(twin)
+    parallel = njit(parallel=True, **_JIT)(py)
 
     def run(*args):
         n = args[rows_arg].shape[0]
-        big = n >= (min_rows or PARALLEL_ROWS) and numba.get_num_threads() > 1
-        return (parallel if big else serial)(*args)
+        threads = numba.get_num_threads()
+        if n >= (min_rows or PARALLEL_ROWS) or threads == 1:
+            return parallel(*args)
+        numba.set_num_threads(1)
+        try:
+            return parallel(*args)
+        finally:
+            numba.set_num_threads(threads)
 
     run.__doc__, run.__name__ = py.__doc__, py.__name__
-    run.serial, run.parallel = serial, parallel
+    run.parallel = parallel
     return run
 
 
@@ -945,11 +950,66 @@ def _chord_bound_reaches(fn, ax, ay, bx, by, probes, target):
 
 
 @njit(**_JIT)
+def _relative_floor(m11, m21, m22, g11, g12, g22):
+    """The smallest eigenvalue of g relative to a = L Lᵀ (the largest λ with g ⪰ λ a),
+    given M = L⁻¹ (lower triangular: m11, m21, m22): the smallest eigenvalue of
+    C = M g Mᵀ, (c11 + c22)/2 − hypot((c11 − c22)/2, c12), whose discriminant is a
+    sum of squares (exact for g = c a, where tr² − 4 det a det g cancels); NaN where
+    g is undefined."""
+    c11 = m11 * m11 * g11
+    c12 = m11 * (m21 * g11 + m22 * g12)
+    c22 = m21 * m21 * g11 + 2.0 * m21 * m22 * g12 + m22 * m22 * g22
+    return 0.5 * (c11 + c22) - math.hypot(0.5 * (c11 - c22), c12)
+
+
+@njit(**_JIT)
+def _lens_bound(fn, ax, ay, bx, by, probes, target):
+    """:func:`curvimesh.geodesic.lens_lower_bound` of one pair, sqrt(λ dᵀ g₀ d) with g₀
+    the metric at the chord's middle and λ the least over the probes of g's smallest
+    eigenvalue relative to g₀ (:func:`_relative_floor`); NaN where g is undefined at a
+    probe. With ``target`` > 0 the probes stop at the first one that puts the bound
+    below it (the value returned is then below ``target``, not the bound)."""
+    dx = bx - ax
+    dy = by - ay
+    g0 = fn(0.5 * (ax + bx), 0.5 * (ay + by))
+    a11, a12, a22 = g0[0], g0[1], g0[2]
+    d2 = a11 * dx * dx + 2.0 * a12 * dx * dy + a22 * dy * dy
+    if math.isnan(d2 + a11 * a22 - a12 * a12):
+        return math.nan
+    if not (a11 > 0.0 and a11 * a22 - a12 * a12 > 0.0 and d2 > 0.0):
+        return 0.0
+    l11 = math.sqrt(a11)  # g₀ = L Lᵀ (Cholesky), M = L⁻¹
+    l21 = a12 / l11
+    l22 = math.sqrt(a22 - l21 * l21)
+    m11, m21, m22 = 1.0 / l11, -l21 / (l11 * l22), 1.0 / l22
+    floor = (target * target) / d2  # the λ below which the bound misses target
+    lam = math.inf
+    for k in range(probes.shape[0]):
+        tk, sk = probes[k, 0], probes[k, 1]
+        g = fn(ax + tk * dx + sk * dy, ay + tk * dy - sk * dx)
+        r = _relative_floor(m11, m21, m22, g[0], g[1], g[2])
+        if math.isnan(r):
+            return math.nan
+        lam = min(lam, r)
+        if target > 0.0 and lam < floor:
+            break
+    return math.sqrt(max(lam, 0.0) * d2)
+
+
+@_row_kernel
+def lens_bounds(fn, a, b, probes, out):
+    """:func:`_lens_bound` row by row (no target)."""
+    for i in prange(a.shape[0]):
+        out[i] = _lens_bound(fn, a[i, 0], a[i, 1], b[i, 0], b[i, 1], probes, 0.0)
+
+
+@njit(**_JIT)
 def _is_close(fn, ax, ay, bx, by, short, margin, probes, ts, ws, grid, t, w, tol, straight_first):
     """Whether the shortest parabola from a to b is below ``short``, decided as
     :func:`curvimesh.geodesic.parabola_verdicts` with only ``short``: far if the
     chord bound is at least ``margin`` × short (:func:`_chord_bound_reaches`), close
-    if the straight segment (rule ``ts``, ``ws``) is below it, else by the search
+    if the straight segment (rule ``ts``, ``ws``) is below it, far if the lens bound
+    (:func:`_lens_bound`) is at least ``margin`` × short, else by the search
     stopping at its verdict. With ``straight_first`` the segment is measured before
     the bound (for pairs likely close: the bound is then not needed)."""
     if not straight_first and _chord_bound_reaches(fn, ax, ay, bx, by, probes, margin * short):
@@ -958,6 +1018,8 @@ def _is_close(fn, ax, ay, bx, by, short, margin, probes, ts, ws, grid, t, w, tol
     if upper < short:  # (an undefined length is inf, never NaN)
         return True
     if straight_first and _chord_bound_reaches(fn, ax, ay, bx, by, probes, margin * short):
+        return False
+    if _lens_bound(fn, ax, ay, bx, by, probes, margin * short) >= margin * short:
         return False
     return _search(fn, ax, ay, bx, by, grid, t, w, tol, 60, True, short, math.inf)[2] < 0
 
@@ -985,6 +1047,17 @@ def _nearest_close(
         ):  # fmt: skip
             return True
     return False
+
+
+@_row_kernel(min_rows=SEARCH_PARALLEL_ROWS)
+def close_pairs(fn, a, b, short, margin, probes, ts, ws, grid, t, w, tol, out):
+    """Whether the shortest parabola of each pair (rows of ``a``, ``b`` ``(n, 2)``) is
+    below ``short`` (:func:`_is_close`, the chord bound first)."""
+    for i in prange(a.shape[0]):
+        out[i] = _is_close(
+            fn, a[i, 0], a[i, 1], b[i, 0], b[i, 1], short, margin, probes, ts, ws, grid, t, w,
+            tol, False,
+        )  # fmt: skip
 
 
 @_row_kernel(min_rows=SEARCH_PARALLEL_ROWS)

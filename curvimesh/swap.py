@@ -59,7 +59,7 @@ from numpy.typing import NDArray
 from curvimesh.bezier import valid_exact
 from curvimesh.curve import assemble_p2
 from curvimesh.freenode import shortest_parabola
-from curvimesh.geodesic import chord_lower_bound
+from curvimesh.geodesic import chord_lower_bound, lens_lower_bound
 from curvimesh.mesh import (
     EdgeStore,
     Mesh,
@@ -143,15 +143,37 @@ def length_rule_gain(
 AREA_MARGIN, LENGTH_MARGIN = 1.05, 1.1
 
 
+def without_hope(
+    bound: NDArray,
+    q_old: NDArray,
+    floor: float | None,
+    in_range: NDArray | None,
+    min_gain: float,
+) -> NDArray[np.bool_]:
+    """Candidates ``(k,)`` that no new edge can make worth swapping, given an upper
+    bound ``bound`` of the new pair's worse quality (:func:`quality_bound`) and the
+    old pair's ``q_old``: by the quality rule, those whose bound is at most ``q_old +
+    min_gain``; by the rule for lengths (``floor`` and ``in_range``, whether the old
+    edge is in the range, given), every case keeps the pair's quality clipped at the
+    floor, and with the old edge in the range (no case 2) a pair that cannot gain
+    quality has neither case 1 nor case 3."""
+    if floor is None:
+        return bound <= q_old + min_gain
+    return (np.minimum(bound, floor) < np.minimum(q_old, floor)) | (
+        in_range & (bound <= q_old + min_gain)
+    )
+
+
 def quality_bound(area: NDArray, outer: NDArray, lower: NDArray) -> NDArray:
     """An upper bound ``(k,)`` of the worse quality (4) of the two triangles a swap makes.
 
     The two new triangles cover the quad of the two old ones, so their metric
     areas add up to the old ones' ``area``; ``outer`` is the sum of the squared
     lengths of the quad's four sides and ``lower`` a lower bound of the new
-    edge's length (:func:`curvimesh.geodesic.chord_lower_bound`). By the mediant
-    inequality, min(A₁/D₁, A₂/D₂) ≤ (A₁ + A₂)/(D₁ + D₂), with Dᵢ the sums of
-    squared lengths, D₁ + D₂ = outer + 2 L_cd²:
+    edge's length (:func:`curvimesh.geodesic.chord_lower_bound` or
+    :func:`~curvimesh.geodesic.lens_lower_bound`). By the mediant inequality,
+    min(A₁/D₁, A₂/D₂) ≤ (A₁ + A₂)/(D₁ + D₂), with Dᵢ the sums of squared
+    lengths, D₁ + D₂ = outer + 2 L_cd²:
 
         min(q₁', q₂') ≤ 4√3 · AREA_MARGIN · area / (outer + 2 (lower / LENGTH_MARGIN)²).
 
@@ -236,19 +258,21 @@ def swap(
             break
         # candidates no new edge could make worth it, before searching their parabolas
         outer = sum(stored_length(u, v) ** 2 for u, v in ((a, d), (c, a), (d, b), (b, c)))
-        bound = quality_bound(area[t1] + area[t2], outer, chord_lower_bound(field, pts[c], pts[d]))
         q_old = np.minimum(q[t1], q[t2])
+        floor = in_range = None
         if length_rule:
-            # every case keeps the pair's quality clipped at the floor; with the old
-            # edge in the range (no case 2) a pair that cannot gain quality has
-            # neither case 1 nor case 3
             floor = max(min_quality, float(q.min()))
             in_range = out_of_range(elen[e_ab], length_range) <= min_gain
-            hopeless = (np.minimum(bound, floor) < np.minimum(q_old, floor)) | (
-                in_range & (bound <= q_old + min_gain)
-            )
-        else:
-            hopeless = bound <= q_old + min_gain
+        quad_area = area[t1] + area[t2]
+        lower = chord_lower_bound(field, pts[c], pts[d])
+        bound = quality_bound(quad_area, outer, lower)
+        hopeless = without_hope(bound, q_old, floor, in_range, min_gain)
+        # the lens bound of the new edge, where the chord bound leaves hope
+        k = np.flatnonzero(~hopeless)
+        bound = quality_bound(quad_area[k], outer[k], lens_lower_bound(field, pts[c[k]], pts[d[k]]))
+        hopeless[k] = without_hope(
+            bound, q_old[k], floor, None if in_range is None else in_range[k], min_gain
+        )
         rejected = sorted_union(rejected, qk[hopeless])
         e_ab, a, b, c, d, t1, t2, qk = (v[~hopeless] for v in (e_ab, a, b, c, d, t1, t2, qk))
         if len(a) == 0:

@@ -326,6 +326,9 @@ def test_geodesic_kernels_match_numpy(name):
         geo.chord_lower_bound(fast, a, b), geo.chord_lower_bound(ref, a, b), rtol=1e-7
     )
     np.testing.assert_allclose(
+        geo.lens_lower_bound(fast, a, b), geo.lens_lower_bound(ref, a, b), rtol=1e-7
+    )
+    np.testing.assert_allclose(
         geo.parabola_length_rule(fast, a, b, p0.mid),
         geo.parabola_length_rule(ref, a, b, p0.mid),
         rtol=1e-7,
@@ -670,20 +673,27 @@ def test_closeness_in_an_index_is_the_pairwise_verdict_over_its_ellipses(name):
     assert not truth[:50].all()  # the exclusions matter
 
 
-def test_parallel_twins_have_their_own_cache_entries_and_the_same_results():
-    # numba's disk cache indexes a function by its qualified name: the parallel twin
-    # must not share the serial one's (it would load the serial code)
-    for kernel in (kernels.shortest_parabolas, kernels.parabola_lengths, kernels.close_candidates):
-        assert kernel.parallel.py_func.__qualname__ != kernel.serial.py_func.__qualname__
+def test_a_row_kernel_gives_the_same_results_on_one_thread_and_puts_the_threads_back():
+    import numba
+
     fld = load_metric(METRICS / "toy.yaml")
     a = box_points(fld, 3000, 81)
     b = a + np.random.default_rng(82).normal(scale=0.05, size=a.shape)
     t, w = geo._gauss(2, 5)
     grid = np.linspace(-0.5, 0.5, 5)
     out = [np.empty(len(a)) for _ in range(4)]
-    kernels.shortest_parabolas.serial(fld.kernel.g, a, b, grid, t, w, 2e-3, 60, out[0], out[1])
-    kernels.shortest_parabolas.parallel(fld.kernel.g, a, b, grid, t, w, 2e-3, 60, out[2], out[3])
+    threads = numba.get_num_threads()
+    kernels.shortest_parabolas(fld.kernel.g, a, b, grid, t, w, 2e-3, 60, out[0], out[1])
+    for k in range(0, len(a), 50):  # calls below the kernel's parallel rows
+        rows = slice(k, k + 50)
+        kernels.shortest_parabolas(
+            fld.kernel.g, a[rows], b[rows], grid, t, w, 2e-3, 60, out[2][rows], out[3][rows]
+        )
+        assert numba.get_num_threads() == threads
     assert np.array_equal(out[0], out[2]) and np.array_equal(out[1], out[3])
+    with pytest.raises(TypeError):  # a call that fails puts the threads back too
+        kernels.shortest_parabolas(fld.kernel.g, a[:5], b[:5], grid, t, w, 2e-3, 60, None)
+    assert numba.get_num_threads() == threads
 
 
 TOL = 2e-3  # the relocation's search tolerance

@@ -383,13 +383,57 @@ def test_the_chord_bound_is_the_geodesic_length_along_principal_directions():
     assert bound[:-2].min() < 0.2 * exact[:-2].max()  # not tight off the axes
 
 
+def test_the_lens_bound_is_the_geodesic_length_in_a_constant_metric():
+    # the same constant metric: g ⪰ 1 · g₀ everywhere, the bound is sqrt(dᵀ g d) in
+    # every direction, where the chord bound is tight only along the axes
+    from curvimesh.geodesic import chord_lower_bound, lens_lower_bound
+
+    fld = load_metric_text(
+        "domain: {box: [[0, 0], [1, 1]]}\nmetric: {eigen: {sizes: [0.01, 0.2], angle: pi/6}}\n"
+    )
+    g = fld.tensor(np.array([[0.5, 0.5]]))[0]
+    rng = np.random.default_rng(4)
+    a = rng.uniform(0.3, 0.7, (400, 2))
+    ang = rng.uniform(0, np.pi, 400)
+    d = rng.uniform(0.005, 0.1, (400, 1)) * np.column_stack([np.cos(ang), np.sin(ang)])
+    exact = np.sqrt(np.einsum("ni,ij,nj->n", d, g, d))
+    np.testing.assert_allclose(lens_lower_bound(fld, a, a + d), exact, rtol=1e-9)
+    assert np.median(chord_lower_bound(fld, a, a + d) / exact) < 0.5
+
+
+def test_the_lens_bound_on_the_poincare_half_plane():
+    # g = I / y²: for a horizontal pair at height y₀, |d| = w, the probes' highest
+    # point is the middle node of α = −1/2, at y₀ + w/2, where g = (y₀ / (y₀ + w/2))² g₀:
+    # the bound is w / (y₀ + w/2), below the geodesic's arccosh(1 + w² / (2 y₀²)) and
+    # below the shortest parabola's length
+    from curvimesh.geodesic import lens_lower_bound, shortest_parabola
+
+    fld = load_metric_text("domain: {box: [[0, 0.5], [2, 2.5]]}\nmetric: {isotropic: y}\n")
+    rng = np.random.default_rng(5)
+    y0 = rng.uniform(0.6, 1.2, 200)
+    w = rng.uniform(0.05, 0.8, 200)
+    a = np.column_stack([np.full(200, 0.5), y0])
+    b = a + np.column_stack([w, np.zeros(200)])
+    bound = lens_lower_bound(fld, a, b)
+    np.testing.assert_allclose(bound, w / (y0 + w / 2), rtol=1e-9)
+    assert np.all(bound < np.arccosh(1 + w**2 / (2 * y0**2)))
+    par = shortest_parabola(fld, a, b, scan=41, alpha_tol=1e-6)
+    assert np.all(bound <= par.length)
+    assert np.all(par.length <= np.arccosh(1 + w**2 / (2 * y0**2)) * (1 + 2e-3))
+
+
 @pytest.mark.parametrize("name", ["toy", "front", "circular_layer"])
 def test_closeness_with_the_chord_bound_is_the_parabola_decision(name):
     # pairs at every distance and direction: pruning by the bound never changes the
     # decision of the shortest parabola (straight segment, then the search)
     from pathlib import Path
 
-    from curvimesh.geodesic import chord_lower_bound, parabola_length_rule, shortest_parabola
+    from curvimesh.geodesic import (
+        chord_lower_bound,
+        lens_lower_bound,
+        parabola_length_rule,
+        shortest_parabola,
+    )
     from curvimesh.metric import load_metric
     from curvimesh.sampling import search_halfwidths, too_close
 
@@ -407,10 +451,10 @@ def test_closeness_with_the_chord_bound_is_the_parabola_decision(name):
     want = (straight < 0.7) | (par.length < 0.7)
     assert 0.02 < want.mean() < 0.98
     np.testing.assert_array_equal(got, want)
-    # and the bound is below the parabola's length (the 10 % margin is not needed)
+    # and the bounds are below the parabola's length (the 10 % margin is not needed)
     fine = shortest_parabola(fld, a, b, scan=41, alpha_tol=1e-5)
-    bound = chord_lower_bound(fld, a, b)
-    assert np.all(bound <= fine.length * (1 + 1e-6))
+    for bound in (chord_lower_bound(fld, a, b), lens_lower_bound(fld, a, b)):
+        assert np.all(bound <= fine.length * (1 + 1e-6))
 
 
 def test_a_side_node_is_kept_where_its_triangle_can_be_valid():

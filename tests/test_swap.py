@@ -106,7 +106,7 @@ def test_quality_bound_holds_for_every_possible_swap(name):
     import numpy as np
 
     from curvimesh import adapt as pipeline
-    from curvimesh.geodesic import chord_lower_bound, shortest_parabola
+    from curvimesh.geodesic import chord_lower_bound, lens_lower_bound, shortest_parabola
     from curvimesh.mesh import flip_candidates, p1_of
     from curvimesh.metric import load_metric
     from curvimesh.quality import edge_lengths_fast
@@ -137,9 +137,9 @@ def test_quality_bound_holds_for_every_possible_swap(name):
     old2 = nodes([b, a, d], [mid_of(b, a), mid_of(a, d), mid_of(d, b)])
     area = metric_areas(fld, old1) + metric_areas(fld, old2)
     l_ad, l_ca, l_db, l_bc = (length_of(u, v) for u, v in ((a, d), (c, a), (d, b), (b, c)))
-    bound = quality_bound(
-        area, l_ad**2 + l_ca**2 + l_db**2 + l_bc**2, chord_lower_bound(fld, pts[c], pts[d])
-    )
+    outer = l_ad**2 + l_ca**2 + l_db**2 + l_bc**2
+    bound = quality_bound(area, outer, chord_lower_bound(fld, pts[c], pts[d]))
+    lens = quality_bound(area, outer, lens_lower_bound(fld, pts[c], pts[d]))
     straight = 0.5 * (pts[c] + pts[d])
     for m_cd in (straight, shortest_parabola(fld, pts[c], pts[d], exact_length=False).mid):
         l_cd = edge_lengths_fast(fld, pts[c], pts[d], m_cd)
@@ -152,6 +152,7 @@ def test_quality_bound_holds_for_every_possible_swap(name):
             np.column_stack([l_db, l_bc, l_cd]),
         )
         assert np.all(np.minimum(q1, q2) <= bound)
+        assert np.all(np.minimum(q1, q2) <= lens)
     # and it spares most searches: a good mesh's swaps are mostly hopeless
     q_old = np.minimum(
         quality_from(
@@ -160,3 +161,40 @@ def test_quality_bound_holds_for_every_possible_swap(name):
         quality_from(metric_areas(fld, old2), np.column_stack([length_of(b, a), l_ad, l_db])),
     )
     assert np.mean(bound <= q_old) > 0.2
+
+
+def test_the_lens_bound_spares_searches_and_changes_no_swap(monkeypatch):
+    """The swaps with the lens bound are those without it, with fewer new edges searched."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from curvimesh import adapt as pipeline
+    from curvimesh import swap as swap_module
+    from curvimesh.metric import load_metric
+
+    fld = load_metric(Path(__file__).resolve().parent.parent / "metrics" / "three_toys.yaml")
+    opt = pipeline.AdaptOptions()
+    p2 = pipeline.curve(fld, pipeline.triangulate(pipeline.sample(fld, opt), fld, opt), opt)
+    searched = []
+    search = swap_module.shortest_parabola
+
+    def counted(field, a, b, **kw):
+        searched.append(len(a))
+        return search(field, a, b, **kw)
+
+    monkeypatch.setattr(swap_module, "shortest_parabola", counted)
+    runs = []
+    for lens in (True, False):
+        if not lens:
+            monkeypatch.setattr(
+                swap_module, "lens_lower_bound", lambda field, a, b: np.zeros(len(a))
+            )
+        searched.clear()
+        res = swap(fld, p2, length_rule=True)
+        runs.append((res, sum(searched)))
+    (with_lens, n_lens), (without, n_without) = runs
+    assert np.array_equal(with_lens.mesh.points, without.mesh.points)
+    assert np.array_equal(with_lens.mesh.triangles, without.mesh.triangles)
+    assert with_lens.swaps == without.swaps > 0
+    assert n_lens < 0.9 * n_without
