@@ -704,6 +704,15 @@ PROBES = (
 _PROBES = np.array(PROBES)
 
 
+def _probe_metrics(field: MetricField, a: NDArray, b: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """(g11, g12, g22), each ``(len(PROBES), p)``, at the :data:`PROBES` of the pairs a, b."""
+    d = b - a
+    nrm = bisector_normal(a, b)
+    probes = np.concatenate([a + t * d + s * nrm for t, s in PROBES])
+    g = field.tensor(probes, check=False).reshape(len(PROBES), -1, 2, 2)
+    return g[..., 0, 0], g[..., 0, 1], g[..., 1, 1]
+
+
 def chord_lower_bound(field: MetricField, a: NDArray, b: NDArray) -> NDArray:
     """A lower bound ``(p,)`` of the metric length of the parabolas from a to b, |α| ≤ 1/2.
 
@@ -725,10 +734,7 @@ def chord_lower_bound(field: MetricField, a: NDArray, b: NDArray) -> NDArray:
     chord = np.hypot(d[:, 0], d[:, 1])
     with np.errstate(invalid="ignore", divide="ignore"):
         nu = d / chord[:, None]
-    nrm = bisector_normal(a, b)
-    probes = np.concatenate([a + t * d + s * nrm for t, s in PROBES])
-    g = field.tensor(probes, check=False).reshape(len(PROBES), -1, 2, 2)
-    g11, g12, g22 = g[..., 0, 0], g[..., 0, 1], g[..., 1, 1]
+    g11, g12, g22 = _probe_metrics(field, a, b)
     with np.errstate(invalid="ignore", divide="ignore"):
         # νᵀ g⁻¹ ν = (g22 νx² − 2 g12 νx νy + g11 νy²) / det g
         support = (g22 * nu[:, 0] ** 2 - 2 * g12 * nu[:, 0] * nu[:, 1] + g11 * nu[:, 1] ** 2) / (
@@ -744,12 +750,12 @@ def lens_lower_bound(field: MetricField, a: NDArray, b: NDArray) -> NDArray:
     g₀ is the metric at the chord's middle and λ the least over :data:`PROBES`
     of g's smallest eigenvalue relative to g₀ (the smaller root of det(g − λ g₀)
     = 0, the smallest eigenvalue of L⁻¹ g L⁻ᵀ with g₀ = L Lᵀ), so that g ⪰ λ g₀
-    in the lens the parabolas sweep. A curve x(t) from a
-    to b there is then at least sqrt(λ) times as long as in the constant metric
-    g₀, where no curve is shorter than the straight one: ∫ sqrt(x′ᵀ g x′) ≥
-    sqrt(λ) ∫ sqrt(x′ᵀ g₀ x′) ≥ sqrt(λ dᵀ g₀ d). In a constant metric it is
-    the geodesic's length (λ = 1); :func:`chord_lower_bound` is, only where d
-    lies along a principal direction. NaN where g is undefined at a probe.
+    in the lens the parabolas sweep. A curve x(t) from a to b there is then at
+    least sqrt(λ) times as long as in the constant metric g₀, where no curve is
+    shorter than the straight one: ∫ sqrt(x′ᵀ g x′) ≥ sqrt(λ) ∫ sqrt(x′ᵀ g₀ x′)
+    ≥ sqrt(λ dᵀ g₀ d). In a constant metric it is the geodesic's length (λ = 1);
+    :func:`chord_lower_bound` is, only where d lies along a principal
+    direction. NaN where g is undefined at a probe.
     """
     cm = field.kernel
     if cm is not None:
@@ -757,12 +763,9 @@ def lens_lower_bound(field: MetricField, a: NDArray, b: NDArray) -> NDArray:
         kernels.lens_bounds(cm.g, *_rows(a, b), _PROBES, out)
         return out
     d = b - a
-    nrm = bisector_normal(a, b)
     g0 = field.tensor(0.5 * (a + b), check=False)
-    probes = np.concatenate([a + t * d + s * nrm for t, s in PROBES])
-    g = field.tensor(probes, check=False).reshape(len(PROBES), -1, 2, 2)
     a11, a12, a22 = g0[:, 0, 0], g0[:, 0, 1], g0[:, 1, 1]
-    g11, g12, g22 = g[..., 0, 0], g[..., 0, 1], g[..., 1, 1]
+    g11, g12, g22 = _probe_metrics(field, a, b)
     with np.errstate(invalid="ignore", divide="ignore"):
         # the eigenvalues of C = M g Mᵀ, M = L⁻¹ with g₀ = L Lᵀ (Cholesky)
         l11 = np.sqrt(a11)
