@@ -10,8 +10,8 @@ tuned on) once per seed, and checks every mesh against the targets:
 * valid, no edge shorter than 0.7 (to the report's 1e-4 accuracy);
 * at least 98 % of the edges in [0.7, 1.4], none longer than 1.5;
 * quality (4) at least 0.3 at worst, unless a box corner is too sharp in the
-  metric for any triangle to reach it (a triangle with an angle θ has a
-  quality of at most √3 sin θ / (2 − cos θ)), and 0.8 on average;
+  metric for any triangle to reach it with its edges within the targets'
+  lengths (:func:`angle_bound`), and 0.8 on average;
 * at most 1.15 times the ideal triangle count.
 
 Writes ``robustness.md`` (a table of the meshes that miss a target and a
@@ -34,6 +34,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from curvimesh.boundary import corner_angles
 from curvimesh.io import atomic_write_text
 from curvimesh.metric import load_metric
@@ -42,9 +44,35 @@ HERE = Path(__file__).resolve().parent
 
 
 def corner_bound(path: str) -> float:
-    """The best worst quality the sharpest box corner of the metric allows."""
-    theta = float(corner_angles(load_metric(path)).min())
-    return math.sqrt(3.0) * math.sin(theta) / (2.0 - math.cos(theta))
+    """The best worst quality the sharpest box corner of the metric allows
+    (:func:`angle_bound` of its angle in the metric)."""
+    return angle_bound(float(corner_angles(load_metric(path)).min()))
+
+
+def angle_bound(
+    theta: float, *, lengths: tuple[float, float] = (0.7, 1.5), splits: int = 4
+) -> float:
+    """The best worst quality (4) of the triangles at a corner of angle θ whose edges
+    stay within ``lengths`` (the targets' shortest and longest edge).
+
+    The corner is split into m = 1 … ``splits`` triangles of angle θ/m; one with
+    sides a, b at the angle φ has the quality 4√3 (ab sin φ / 2) / (a² + b² + c²),
+    c² = a² + b² − 2ab cos φ, maximised over a, b on a grid of 161 values with c
+    within ``lengths`` too. Without the lengths it would be √3 sin φ / (2 − cos φ)
+    (a = b), whose third side is too short below about 41°: at a corner of 12°
+    that bound is 0.35 with a cross edge of 0.21, the lengths' 0.26.
+    """
+    lo, hi = lengths
+    a, b = np.meshgrid(np.linspace(lo, hi, 161), np.linspace(lo, hi, 161))
+    best = 0.0
+    for m in range(1, splits + 1):
+        phi = theta / m
+        c2 = a * a + b * b - 2.0 * a * b * math.cos(phi)
+        q = 2.0 * math.sqrt(3.0) * a * b * math.sin(phi) / (a * a + b * b + c2)
+        ok = (c2 >= lo * lo) & (c2 <= hi * hi)
+        if ok.any():
+            best = max(best, float(q[ok].max()))
+    return best
 
 
 def misses(report: dict, corner: float) -> list[str]:
@@ -81,7 +109,8 @@ def run_seed(files: list[str], seed: int, work: Path, jobs: int) -> dict:
 
 
 def table(rows: list[dict], seeds: list[int], seconds: float) -> str:
-    """The markdown page: the count of meshes that meet every target, then the others."""
+    """The markdown page: the count of meshes that meet every target, then the others
+    and those whose quality below 0.3 a sharp corner excuses."""
     good = sum(1 for r in rows if r["ok"] and not r["misses"])
     lines = [
         "# Robustness: the unit-mesh targets on metrics not tuned on",
@@ -92,14 +121,15 @@ def table(rows: list[dict], seeds: list[int], seconds: float) -> str:
         "",
         f"**{good} of {len(rows)} meshes meet every target.** Quality below 0.3 is not "
         "counted as a miss where the sharpest box corner allows no better (the corner's "
-        "bound is given).",
+        "bound is given): the table lists the meshes that miss a target and those excused.",
         "",
         "| metric | seed | vertices | edge min – max | in [0.7, 1.4] | quality min / mean "
         "| corner bound | efficiency | misses |",
         "|---|--:|--:|--:|--:|--:|--:|--:|---|",
     ]
     for r in rows:
-        if r["ok"] and not r["misses"]:
+        excused = r["ok"] and r["report"]["quality"]["min"] < 0.3
+        if r["ok"] and not r["misses"] and not excused:
             continue
         if not r["ok"]:
             lines.append(f"| {r['name']} | {r['seed']} | | | | | | | failed: {r['error']} |")
@@ -110,7 +140,7 @@ def table(rows: list[dict], seeds: list[int], seconds: float) -> str:
             f"| {r['name']} | {r['seed']} | {rep['vertices']} | {el['min']:.3f} – "
             f"{el['max']:.3f} | {100 * el['in_range']:.2f} % | {q['min']:.3f} / "
             f"{q['mean']:.3f} | {r['corner']:.3f} | {rep['efficiency']:.3f} | "
-            f"{'; '.join(r['misses'])} |"
+            f"{'; '.join(r['misses']) or 'none (the quality excused by the corner)'} |"
         )
     return "\n".join(lines) + "\n"
 

@@ -9,7 +9,7 @@ edge's metric length (paper section 3 starts Algorithm 1 from this 1D mesh).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,11 +22,13 @@ from curvimesh.metric import MetricField
 class BoundaryMesh:
     """Boundary vertices ``(nv, 2)``, counter-clockwise from (xmin, ymin), and
     for each boundary edge (vertex k → k+1, cyclic) its P2 node ``(nv, 2)`` and side 0..3
-    (bottom, right, top, left)."""
+    (bottom, right, top, left); ``seeds`` ``(ns, 2)``, interior points placed with the
+    boundary (the column of a cone point, :func:`cone_design`), before sampling."""
 
     vertices: NDArray
     midnodes: NDArray
     sides: NDArray
+    seeds: NDArray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 def corner_edge_lengths(
@@ -308,7 +310,9 @@ def discretize_box(
     the first vertices of the two sides are at least ``min_dist`` apart (see
     :func:`corner_edge_lengths`); where that would take edges longer than
     1.4 × target, the vertices near the corner are staggered between its two
-    sides instead (:func:`wedge_distances`). The rest of each side is split evenly.
+    sides instead (:func:`wedge_distances`). At a cone point of a side
+    (:func:`side_cones`) the vertices and a column of interior seeds follow
+    :func:`cone_design`. The rest of each side is split evenly.
     """
     _, corners = _corner_frames(field)
     at_corner = corner_edge_lengths(field, target=target, min_dist=min_dist, max_length=max_length)
@@ -319,20 +323,169 @@ def discretize_box(
             at_corner[k], wedges[k] = _checked_corner(
                 field, tables, k, float(at_corner[k]), (target, min_dist, max_length)
             )
-    verts, mids, sides = [], [], []
+    verts, mids, sides, seeds = [], [], [], []
     for k in range(4):
         a, b = corners[k], corners[(k + 1) % 4]
         s, cum = tables[k]
         total = cum[-1]
-        targets = _side_targets(
-            total, target, at_corner[k], at_corner[(k + 1) % 4], wedges[k], wedges[(k + 1) % 4]
-        )
+        ends = (at_corner[k], at_corner[(k + 1) % 4], wedges[k], wedges[(k + 1) % 4])
+        targets = _side_targets(total, target, *ends)
+        for pos, angle in side_cones(field, tables, k, target=target):
+            design = cone_design(angle, min_dist=min_dist)
+            with_cone = _cone_targets(targets, total, target, ends, pos, design[0])
+            if with_cone is not None:
+                targets = with_cone
+                seeds.append(_cone_seeds(field, tables, k, pos, design[1]))
         t = np.interp(targets, cum, s)
         tm = np.interp(0.5 * (targets[:-1] + targets[1:]), cum, s)
         verts.append(a[None, :] + t[:-1, None] * (b - a)[None, :])
         mids.append(a[None, :] + tm[:, None] * (b - a)[None, :])
         sides.append(np.full(len(t) - 1, k))
-    return BoundaryMesh(np.concatenate(verts), np.concatenate(mids), np.concatenate(sides))
+    return BoundaryMesh(
+        np.concatenate(verts),
+        np.concatenate(mids),
+        np.concatenate(sides),
+        np.concatenate(seeds) if seeds else np.zeros((0, 2)),
+    )
+
+
+#: A side point whose two side points one unit away on either side are closer than
+#: this across the domain (shortest parabola) is tried as a cone point: the metric's
+#: angle there below 2 asin(1/2) = 60°.
+CONE_CROSS = 1.0
+
+#: Spacing of the scan for cone points along a side (metric length).
+CONE_SCAN = 0.5
+
+
+def _cross(field: MetricField, tables, k: int, pos: NDArray, rho: float) -> NDArray:
+    """Shortest-parabola lengths ``(n,)`` between the points of side ``k`` at metric
+    distances pos − rho and pos + rho from its first corner."""
+    left = _at_distance(field, tables, k, pos - rho, backwards=False)
+    right = _at_distance(field, tables, k, pos + rho, backwards=False)
+    return shortest_parabola(field, left, right, exact_length=False, remember=False).length
+
+
+def side_cones(
+    field: MetricField, tables, k: int, *, target: float = 1.0
+) -> list[tuple[float, float]]:
+    """Cone points of side ``k``: (metric distance from its first corner, angle).
+
+    Where the metric is singular at a point P of a side (concentric circles
+    centred on it, say: polar sizes h_r across and h_t along the circles), the
+    domain about P is a cone in the metric, of angle θ = π h_r / h_t at the
+    side's point: side points at distance ρ on either side of P are 2ρ sin(θ/2)
+    apart across the domain, not 2ρ. A vertex at P has both its side edges
+    straight along the side, at 180° in the plane: no P2 triangle there is valid
+    with P as its only corner on that side, and any split of θ into two
+    triangles makes both thin. The sides are scanned (:data:`CONE_SCAN`, one
+    unit ``target`` from the corners) for points whose side points at ±1 are
+    closer than :data:`CONE_CROSS` across the domain, the closest point of each
+    run refined to 1/50 of a unit; it is a cone point when the ratio of that
+    distance to 2ρ is the same at ρ = 1/4 (within 20 %): a metric that is
+    only strongly curved near the side (a singular point inside the domain, a
+    front) straightens out at smaller ρ. The angle is :func:`_cone_angle`'s.
+    """
+    total = float(tables[k][1][-1])
+    rho = target
+    pos = np.arange(rho + target, total - rho - target, CONE_SCAN * target)
+    if len(pos) == 0:
+        return []
+    cross = _cross(field, tables, k, pos, rho)
+    low = np.flatnonzero(cross < CONE_CROSS * rho)
+    out: list[tuple[float, float]] = []
+    for run in np.split(low, np.flatnonzero(np.diff(low) > 1) + 1):
+        if run.size == 0:
+            continue
+        c = pos[run[np.argmin(cross[run])]]
+        fine = np.linspace(c - CONE_SCAN * target, c + CONE_SCAN * target, 51)
+        fine = fine[(fine > rho) & (fine < total - rho)]
+        fc = _cross(field, tables, k, fine, rho)
+        best = int(np.argmin(fc))
+        p, ratio = float(fine[best]), float(fc[best]) / (2 * rho)
+        small = float(_cross(field, tables, k, np.array([p]), 0.25 * rho)[0]) / (0.5 * rho)
+        if np.isfinite(ratio) and abs(small - ratio) <= 0.2 * ratio:
+            out.append((p, _cone_angle(field, tables, k, p, rho)))
+    return out
+
+
+def _inward(
+    field: MetricField, tables, k: int, pos: float
+) -> tuple[NDArray, NDArray, NDArray, float]:
+    """The point of side ``k`` at metric distance ``pos`` from its first corner, the
+    side's unit tangent and inward normal there, and the box's depth along it."""
+    p = _at_distance(field, tables, k, np.array([pos]), backwards=False)[0]
+    _, corners = _corner_frames(field)
+    a, b = corners[k], corners[(k + 1) % 4]
+    t = (b - a) / np.hypot(*(b - a))
+    xmin, ymin, xmax, ymax = field.box
+    depth = (ymax - ymin) if k % 2 == 0 else (xmax - xmin)
+    return p, t, np.array([-t[1], t[0]]), depth  # counter-clockwise: the box on the left
+
+
+def _cone_angle(field: MetricField, tables, k: int, pos: float, radius: float) -> float:
+    """The angle of the cone point at ``pos`` of side ``k``: the metric length of the
+    half circle about it that reaches metric distance ``radius`` along the inward
+    normal, over ``radius`` (circumference over radius, exact for concentric
+    circles centred there: π h_r / h_t; the shortest parabolas across the cone
+    bend too little to measure it)."""
+    p, t, n, depth = _inward(field, tables, k, pos)
+    s, cum = refined_arclength(field, p, p + depth * n)
+    r = float(np.interp(radius, cum, s)) * depth
+    phi = np.linspace(0.0, math.pi, 513)
+    arc = p[None, :] + r * (np.cos(phi)[:, None] * t[None, :] + np.sin(phi)[:, None] * n[None, :])
+    d = np.diff(arc, axis=0)
+    g = field.tensor(0.5 * (arc[1:] + arc[:-1]))
+    return float(np.sqrt(np.einsum("pi,pij,pj->p", d, g, d)).sum()) / radius
+
+
+def cone_design(angle: float, *, min_dist: float = 0.7) -> tuple[NDArray, NDArray]:
+    """Side vertices and seeds about a cone point of angle θ: their metric distances
+    from it, (side distances, on both sides, ascending; seed distances on its
+    bisector).
+
+    No vertex at the cone point: the side edge across it is 2 min_dist long
+    (its vertices at ±min_dist), then edges of 2 min_dist on both sides, and
+    seeds on the bisector at 2 min_dist, 4 min_dist, … while the cone is narrower
+    than 2 min_dist there (2ρ sin(θ/2) < 2 min_dist). In the cone, unfolded
+    flat, a seed X at ρ = 2 min_dist is min_dist from the side vertices at
+    min_dist (law of cosines, for θ ≤ 60°) and farther from those at 3 min_dist;
+    the triangles across the cone point and beside it have edges of 2 min_dist
+    and about min_dist (θ = 18°: 1.4, 0.74, 0.74, quality 0.35).
+    """
+    step = 2.0 * min_dist
+    width = min_dist / max(math.sin(0.5 * angle), 1e-12)  # where the cone is `step` wide
+    count = max(1, int(width // step))
+    seeds = step * np.arange(1, count + 1)
+    sides = min_dist + step * np.arange(count + 1)
+    return sides, seeds
+
+
+def _cone_targets(
+    targets: NDArray, total: float, target: float, ends: tuple, pos: float, design: NDArray
+) -> NDArray | None:
+    """The side's vertex distances ``targets`` with those about ``pos`` replaced by
+    ``pos ± design`` and the two stretches between the cone and the corners split
+    again as :func:`_side_targets` splits a side (None when the cone is too near a
+    corner for that)."""
+    reach = float(design[-1])
+    lo, hi = pos - reach, pos + reach
+    first, last, wedge_a, wedge_b = ends
+    if lo < 2.0 * target or total - hi < 2.0 * target:
+        return None
+    left = _side_targets(lo, target, first, target, wedge_a, None)
+    right = hi + _side_targets(total - hi, target, target, last, None, wedge_b)
+    block = np.concatenate([pos - design[::-1], pos + design])
+    return np.concatenate([left[:-1], block, right[1:]])
+
+
+def _cone_seeds(field: MetricField, tables, k: int, pos: float, dist: NDArray) -> NDArray:
+    """Seeds ``(n, 2)`` at metric distances ``dist`` from the cone point at ``pos`` of
+    side ``k``, on the perpendicular to the side into the box (its straight length)."""
+    p, _, n, depth = _inward(field, tables, k, pos)
+    s, cum = refined_arclength(field, p, p + depth * n)
+    h = np.interp(dist, cum, s)
+    return p[None, :] + h[:, None] * (depth * n)[None, :]
 
 
 def _side_targets(

@@ -521,6 +521,8 @@ def sample_points(
     rng = np.random.default_rng(seed) if seed else None
     index = PointIndex()
     index.add(boundary.vertices)
+    if len(boundary.seeds):
+        index.add(boundary.seeds)  # fixed with the boundary; the fronts keep away from them
     front = boundary.vertices
     arrival = np.full(front.shape, np.nan)  # the velocity each point was reached with
     ref, turns = _SIDE_TANGENTS[boundary.sides], BOUNDARY_TURNS  # the hexagons' references

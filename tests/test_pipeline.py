@@ -268,6 +268,103 @@ def test_wedge_vertices_make_no_short_edge_at_any_corner_angle(theta):
     assert t[-1] * math.sin(theta) >= 0.7 and t[-2] * math.sin(theta) >= 0.7
 
 
+def _on_side_concentric(h_r: float, h_t: float) -> str:
+    return (
+        "domain: {box: [[0, 0], [1, 0.8]]}\n"
+        f"metric: {{eigen: {{sizes: [{h_r}, {h_t}], angle: 'atan2(y, x - 0.4)'}}}}\n"
+    )
+
+
+@pytest.mark.parametrize(("h_t", "angle"), [(0.1, math.pi / 10), (0.05, math.pi / 5)])
+def test_a_cone_point_on_a_side_is_found_with_its_angle(h_t, angle):
+    # concentric circles centred on the bottom side at x = 0.4: radial size 0.01, so
+    # the side's metric length to the centre is 40; the domain about it is a cone of
+    # angle π h_r / h_t (half circles of radius r: π r / h_t long, r / h_r away)
+    from curvimesh.boundary import _side_tables, side_cones
+
+    fld = load_metric_text(_on_side_concentric(0.01, h_t))
+    tables = _side_tables(fld)
+    (pos, got), *more = side_cones(fld, tables, 0)
+    assert not more and abs(pos - 40.0) <= 0.02
+    assert got == pytest.approx(angle, rel=1e-3)
+    assert all(side_cones(fld, tables, k) == [] for k in (1, 2, 3))
+
+
+@pytest.mark.parametrize(
+    "path",
+    [
+        "metrics/toy.yaml",
+        "metrics/three_toys.yaml",
+        "metrics/concentric.yaml",
+        "metrics/circular_layer.yaml",
+        "bench/robustness/u09_concentric_offcentre.yaml",
+        "bench/robustness/u21_concentric_15to1.yaml",
+        "bench/robustness/u24_circ_layer_crossing_box.yaml",
+    ],
+)
+def test_no_cone_point_where_the_metric_is_smooth_on_the_sides(path):
+    # singular centres inside the box and layers crossing a side are not cones of a side
+    from pathlib import Path
+
+    from curvimesh.boundary import _side_tables, side_cones
+    from curvimesh.metric import load_metric
+
+    fld = load_metric(Path(__file__).resolve().parents[1] / path)
+    tables = _side_tables(fld)
+    assert all(side_cones(fld, tables, k) == [] for k in range(4))
+
+
+@given(theta=st.floats(math.radians(3), math.radians(60)))
+@settings(max_examples=60, deadline=None)
+def test_the_cone_design_makes_its_triangles_of_edges_in_range(theta):
+    """In the cone unfolded flat (rays at 0 and θ from the cone point), side vertices
+    d₀ < d₁ < … at ±d and seeds X₁, X₂, … on the bisector: the side edge across the
+    point (d₀ + d₀) and along the sides 1.4, and the triangles the design is for —
+    (d₀, d₀', X₁) across the point, (d_{j−1}, d_j, X_j) and (d_j, X_j, X_{j+1}) on
+    each side — with their other edges in [0.7, 1.4]; the column ends where the
+    cone is 1.4 wide."""
+    from curvimesh.boundary import cone_design
+
+    sides, seeds = cone_design(theta)
+    np.testing.assert_allclose(np.diff(np.concatenate([[-sides[0]], sides])), 1.4)
+    np.testing.assert_allclose(np.diff(np.concatenate([[0.0], seeds])), 1.4)
+    assert len(sides) == len(seeds) + 1
+
+    def at(r, a):
+        return np.array([r * math.cos(a), r * math.sin(a)])
+
+    inner = []
+    for ray in (0.0, theta):
+        d = [at(r, ray) for r in sides]
+        x = [at(r, theta / 2) for r in seeds]
+        inner += [d[j] - x[j] for j in range(len(x))]  # d_j–X_{j+1}
+        inner += [d[j + 1] - x[j] for j in range(len(x))]  # d_{j+1}–X_{j+1}
+    lengths = np.hypot(*np.array(inner).T)
+    assert lengths.min() >= 0.7 - 1e-9 and lengths.max() <= 1.4 + 1e-9
+    assert 2 * (seeds[-1] + 1.4) * math.sin(theta / 2) > 1.4  # one seed on, wider than 1.4
+    assert len(seeds) == 1 or 2 * seeds[-1] * math.sin(theta / 2) <= 1.4 + 1e-9
+
+
+def test_concentric_circles_centred_on_a_side_make_a_unit_mesh():
+    # bench/robustness/u27: with a vertex at the centre, its triangles there had an
+    # edge of 3.47 and a quality of 0.10; across the cone of 18° the side edge now
+    # spans the centre, with a column of seeds above it
+    from curvimesh.quality import metric_areas, quality_from
+
+    fld = load_metric_text(_on_side_concentric(0.01, 0.1))
+    mesh = pipeline.adapt(fld).mesh
+    rep = mesh_report(fld, mesh)
+    assert rep["valid"]
+    assert rep["edge_length"]["min"] >= 0.7 - 1e-4 and rep["edge_length"]["max"] <= 1.4 + 1e-3
+    pts = np.asarray(mesh.points)
+    assert np.hypot(*(pts[mesh.vertex_ids] - [0.4, 0.0]).T).min() > 0.005  # no vertex there
+    length = edge_lengths(fld, pts, mesh.edges, mesh.edge_mid)
+    q = quality_from(metric_areas(fld, pts[np.asarray(mesh.triangles)]), length[mesh.tri_edges])
+    centre = pts[np.asarray(mesh.triangles)[:, :3]].mean(axis=1)
+    near = np.hypot(*(centre - [0.4, 0.0]).T) < 0.06
+    assert near.sum() >= 10 and q[near].min() >= 0.3
+
+
 def test_max_vertices_fails_fast():
     from curvimesh.errors import InputError
 

@@ -44,7 +44,7 @@ def test_each_target_is_missed_alone_and_a_sharp_corner_excuses_only_the_quality
     assert robustness.misses(report(efficiency=1.2), 1.0) == ["efficiency 1.200 > 1.15"]
 
 
-def test_corner_bound_of_a_constant_field_is_the_formula_at_its_sharpest_corner(tmp_path):
+def test_corner_bound_of_a_constant_field_is_the_bound_at_its_sharpest_corner(tmp_path):
     # sizes 0.01 along 30°, 0.2 across: the corners (0, 0) and (1, 1) are 6.6° wide
     path = tmp_path / "c.yaml"
     path.write_text("metric:\n  eigen: {sizes: [0.01, 0.2], angle: 0.5235987755982988}\n")
@@ -52,9 +52,11 @@ def test_corner_bound_of_a_constant_field_is_the_formula_at_its_sharpest_corner(
     g22 = math.sin(math.pi / 6) ** 2 / 1e-4 + math.cos(math.pi / 6) ** 2 / 0.04
     g12 = math.cos(math.pi / 6) * math.sin(math.pi / 6) * (1 / 1e-4 - 1 / 0.04)
     theta = math.acos(abs(g12) / math.sqrt(g11 * g22))
-    want = math.sqrt(3) * math.sin(theta) / (2 - math.cos(theta))
+    assert math.isclose(math.degrees(theta), 6.6, abs_tol=0.05)
+    want = robustness.angle_bound(theta)
     assert math.isclose(robustness.corner_bound(str(path)), want, rel_tol=1e-9)
-    assert 0.19 < want < 0.2
+    # below the bound without lengths (equal sides, a cross edge of 0.12)
+    assert want < math.sqrt(3) * math.sin(theta) / (2 - math.cos(theta)) < 0.2
 
 
 def test_a_run_writes_the_page_with_every_mesh_counted(tmp_path):
@@ -64,3 +66,19 @@ def test_a_run_writes_the_page_with_every_mesh_counted(tmp_path):
     page = (tmp_path / "robustness.md").read_text()
     assert "**1 of 1 meshes meet every target.**" in page
     assert (tmp_path / "work" / "seed0" / "u14_iso_variable.msh").exists()
+
+
+def test_the_corner_bound_keeps_the_edges_within_the_targets():
+    # 60°: the unit equilateral triangle; 90°: two triangles of 45°, better than one
+    # right isosceles triangle (0.866); 12°: with the cross edge at least 0.7 no
+    # triangle reaches 0.3, where equal sides alone would give 0.35 (cross edge 0.21)
+    assert abs(robustness.angle_bound(math.pi / 3) - 1.0) < 1e-3
+    assert robustness.angle_bound(math.pi / 2) > 0.94
+    theta = math.radians(12.0)
+    free = math.sqrt(3.0) * math.sin(theta) / (2.0 - math.cos(theta))
+    assert free > 0.34 and 2 * math.sin(theta / 2) < 0.7
+    assert 0.2 < robustness.angle_bound(theta) < 0.3
+    # a = 1.4, b = 0.7 is one admissible triangle: the bound is at least its quality
+    c2 = 1.4**2 + 0.7**2 - 2 * 1.4 * 0.7 * math.cos(theta)
+    q = 2 * math.sqrt(3) * 1.4 * 0.7 * math.sin(theta) / (1.4**2 + 0.7**2 + c2)
+    assert c2 >= 0.49 and robustness.angle_bound(theta) >= q - 1e-12
