@@ -378,8 +378,8 @@ def side_cones(
     apart across the domain, not 2ρ. A vertex at P has both its side edges
     straight along the side, at 180° in the plane: no P2 triangle there is valid
     with P as its only corner on that side, and any split of θ into two
-    triangles makes both thin. The sides are scanned (:data:`CONE_SCAN`, one
-    unit ``target`` from the corners) for points whose side points at ±1 are
+    triangles makes both thin. The sides are scanned (:data:`CONE_SCAN`, two
+    units ``target`` from the corners) for points whose side points at ±1 are
     closer than :data:`CONE_CROSS` across the domain, the closest point of each
     run refined to 1/50 of a unit; it is a cone point when the ratio of that
     distance to 2ρ is the same at ρ = 1/4 (within 20 %): a metric that is
