@@ -8,6 +8,7 @@ edge's metric length (paper section 3 starts Algorithm 1 from this 1D mesh).
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -329,13 +330,12 @@ def discretize_box(
         s, cum = tables[k]
         total = cum[-1]
         ends = (at_corner[k], at_corner[(k + 1) % 4], wedges[k], wedges[(k + 1) % 4])
-        targets = _side_targets(total, target, *ends)
-        for pos, angle in side_cones(field, tables, k, target=target):
-            design = cone_design(angle, min_dist=min_dist)
-            with_cone = _cone_targets(targets, total, target, ends, pos, design[0])
-            if with_cone is not None:
-                targets = with_cone
-                seeds.append(_cone_seeds(field, tables, k, pos, design[1]))
+        cones = [
+            (pos, cone_design(angle, min_dist=min_dist))
+            for pos, angle in side_cones(field, tables, k, target=target)
+        ]
+        targets, kept = _cone_targets(total, target, ends, [(p, d[0]) for p, d in cones])
+        seeds += [_cone_seeds(field, tables, k, cones[i][0], cones[i][1][1]) for i in kept]
         t = np.interp(targets, cum, s)
         tm = np.interp(0.5 * (targets[:-1] + targets[1:]), cum, s)
         verts.append(a[None, :] + t[:-1, None] * (b - a)[None, :])
@@ -462,21 +462,33 @@ def cone_design(angle: float, *, min_dist: float = 0.7) -> tuple[NDArray, NDArra
 
 
 def _cone_targets(
-    targets: NDArray, total: float, target: float, ends: tuple, pos: float, design: NDArray
-) -> NDArray | None:
-    """The side's vertex distances ``targets`` with those about ``pos`` replaced by
-    ``pos ± design`` and the two stretches between the cone and the corners split
-    again as :func:`_side_targets` splits a side (None when the cone is too near a
-    corner for that)."""
-    reach = float(design[-1])
-    lo, hi = pos - reach, pos + reach
+    total: float, target: float, ends: tuple, cones: list[tuple[float, NDArray]]
+) -> tuple[NDArray, list[int]]:
+    """Metric distances ``(n + 1,)`` of a side's vertices from its first corner (both
+    ends in, as :func:`_side_targets`) with the vertices ``pos ± design`` of each cone
+    point ``(pos, design)`` (ascending ``pos``), and which cones are kept: one whose
+    vertices come within two units of a corner or of the cone before is left out.
+    The stretches between are split as :func:`_side_targets` splits a side."""
     first, last, wedge_a, wedge_b = ends
-    if lo < 2.0 * target or total - hi < 2.0 * target:
-        return None
-    left = _side_targets(lo, target, first, target, wedge_a, None)
-    right = hi + _side_targets(total - hi, target, target, last, None, wedge_b)
-    block = np.concatenate([pos - design[::-1], pos + design])
-    return np.concatenate([left[:-1], block, right[1:]])
+    blocks: list[NDArray] = []
+    kept: list[int] = []
+    edge = 0.0  # where the last block ends (0: the first corner)
+    for i, (pos, design) in enumerate(cones):
+        reach = float(design[-1])
+        if pos - reach - edge < 2.0 * target or total - (pos + reach) < 2.0 * target:
+            continue
+        blocks.append(np.concatenate([pos - design[::-1], pos + design]))
+        kept.append(i)
+        edge = pos + reach
+    if not blocks:
+        return _side_targets(total, target, first, last, wedge_a, wedge_b), kept
+    parts = [_side_targets(blocks[0][0], target, first, target, wedge_a, None)[:-1]]
+    for before, after in itertools.pairwise(blocks):
+        gap = after[0] - before[-1]
+        parts += [before, before[-1] + _plain_targets(gap, target, target, target)[1:-1]]
+    end = blocks[-1][-1]
+    tail = end + _side_targets(total - end, target, target, last, None, wedge_b)
+    return np.concatenate([*parts, blocks[-1], tail[1:]]), kept
 
 
 def _cone_seeds(field: MetricField, tables, k: int, pos: float, dist: NDArray) -> NDArray:

@@ -345,6 +345,28 @@ def test_the_cone_design_makes_its_triangles_of_edges_in_range(theta):
     assert len(seeds) == 1 or 2 * seeds[-1] * math.sin(theta / 2) <= 1.4 + 1e-9
 
 
+def test_cone_points_on_one_side_each_get_their_vertices():
+    # two cone points on a side of 100 units (at 30 and 70), a third too near the
+    # second and one too near the corner: the kept ones have their vertices at
+    # pos ± design, the stretches between are split evenly into edges of 0.7 – 1.4
+    from curvimesh.boundary import _cone_targets, _side_targets, cone_design
+
+    design = cone_design(math.pi / 10)[0]
+    ends = (1.0, 1.0, None, None)
+    cones = [(1.5, design), (30.0, design), (70.0, design), (73.0, design)]
+    got, kept = _cone_targets(100.0, 1.0, ends, cones)
+    assert kept == [1, 2]
+    for pos in (30.0, 70.0):
+        for d in design:
+            assert np.isclose(got, pos - d).any() and np.isclose(got, pos + d).any()
+        assert not np.isclose(got, pos, atol=0.69).any()  # no vertex at the point
+    assert got[0] == 0.0 and got[-1] == 100.0
+    step = np.diff(got)
+    assert step.min() >= 0.7 - 1e-9 and step.max() <= 1.4 + 1e-9
+    plain, none = _cone_targets(100.0, 1.0, ends, [])
+    assert none == [] and np.array_equal(plain, _side_targets(100.0, 1.0, *ends))
+
+
 def test_concentric_circles_centred_on_a_side_make_a_unit_mesh():
     # bench/robustness/u27: with a vertex at the centre, its triangles there had an
     # edge of 3.47 and a quality of 0.10; across the cone of 18° the side edge now
