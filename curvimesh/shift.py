@@ -76,6 +76,7 @@ from numpy.typing import NDArray
 
 from curvimesh.bezier import valid_exact
 from curvimesh.freenode import shortest_parabola
+from curvimesh.geodesic import offset_alpha, parabola_midnode
 from curvimesh.mesh import Mesh, cells_at_vertices
 from curvimesh.metric import MetricField
 from curvimesh.quality import edge_lengths, edge_lengths_fast, metric_areas, quality_from
@@ -514,28 +515,24 @@ def _screened(
 ) -> NDArray:
     """The :data:`SCREEN` best candidates ``(k', 2)`` of a quality move, best first, when
     each incident edge keeps its bend: from x′ to its other end o, its middle node at
-    (x′ + o)/2 + α (o − x′)×e₃ with the edge's present offset α (the parametrisation of
-    :func:`curvimesh.geodesic.parabola_midnode`). A candidate whose star is then valid,
-    with its edges in the rule's bounds and its worst quality above the rule's, is
-    scored as :func:`_best_move` scores it; ties go to the first."""
+    (x′ + o)/2 + α (o − x′)×e₃ (:func:`curvimesh.geodesic.parabola_midnode`) with the
+    edge's present offset α (:func:`~curvimesh.geodesic.offset_alpha`). A candidate
+    whose star is then valid, with its edges in the rule's bounds and its worst
+    quality above the rule's, is scored as :func:`_best_move` scores it; ties go to
+    the first."""
     k = len(cand)
     if k == 0:
         return cand
     mesh, pts = state.mesh, state.pts
     others = pts[star.others]
-    d = others - pts[v]
-    offset = pts[mesh.edge_mid[star.edges]] - 0.5 * (pts[v] + others)
-    alpha = (offset[:, 0] * d[:, 1] - offset[:, 1] * d[:, 0]) / (d * d).sum(axis=1)
-    dn = others[None] - cand[:, None]  # (k, j, 2)
-    normal = np.stack([dn[..., 1], -dn[..., 0]], axis=-1)
-    mid = 0.5 * (cand[:, None] + others[None]) + alpha[None, :, None] * normal
+    j = len(star.edges)
+    here = np.broadcast_to(pts[v], others.shape)
+    alpha = offset_alpha(here, others, pts[mesh.edge_mid[star.edges]] - 0.5 * (here + others))
+    a, b = np.repeat(cand, j, axis=0), np.tile(others, (k, 1))
+    mid = parabola_midnode(a, b, np.tile(alpha, k)).reshape(k, j, 2)
     nodes = _star_nodes(pts[mesh.triangles[star.tris]], star.slots, cand, mid)
     ok = valid_exact(nodes.reshape(-1, 6, 2)).reshape(k, -1).all(axis=1)
-    j = len(star.edges)
-    new_len = edge_lengths_fast(
-        field, np.repeat(cand, j, axis=0), np.tile(others, (k, 1)), mid.reshape(-1, 2),
-        remember=False,
-    ).reshape(k, j)  # fmt: skip
+    new_len = edge_lengths_fast(field, a, b, mid.reshape(-1, 2), remember=False).reshape(k, j)
     rows = np.flatnonzero(ok & rule.lengths_ok(new_len))
     worst = _worst_qualities(field, state, star, nodes[rows], new_len[rows])
     better = worst > rule.q_min
