@@ -61,6 +61,9 @@ REFERENCE_NODES: NDArray[np.float64] = np.array(
 #: Local corners ``(i, j)`` of edge ``k``; the node of edge ``k`` is ``3 + k``.
 EDGES: tuple[tuple[int, int], ...] = ((0, 1), (1, 2), (2, 0))
 
+#: Default relative tolerance of :func:`valid_exact`.
+VALID_RTOL = 1e-12
+
 # Midpoint subdivision of the reference triangle into 4. Column k of each 3x3
 # matrix holds the barycentrics (in the parent) of corner k of the child.
 #
@@ -354,7 +357,7 @@ def min_jacobian(nodes: ArrayLike) -> NDArray[np.float64]:
     return bezier_min(jacobian_bezier(nodes))
 
 
-def valid_exact(nodes: ArrayLike, *, rtol: float = 1e-12) -> NDArray[np.bool_]:
+def valid_exact(nodes: ArrayLike, *, rtol: float = VALID_RTOL) -> NDArray[np.bool_]:
     """Whether ``J > 0`` on the whole closed triangle, decided exactly.
 
     A triangle is valid when ``min J > rtol * max_k |b_k|``: the tolerance is

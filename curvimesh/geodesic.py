@@ -250,7 +250,7 @@ def parabola_midnode(x0: NDArray, x1: NDArray, alpha: NDArray) -> NDArray:
 
 
 @lru_cache(maxsize=64)
-def _gauss(segments: int, order: int) -> tuple[NDArray, NDArray]:
+def gauss_rule(segments: int, order: int) -> tuple[NDArray, NDArray]:
     """Composite Gauss–Legendre nodes and weights on [0, 1] (cached; do not modify)."""
     xg, wg = np.polynomial.legendre.leggauss(order)
     a = np.arange(segments) / segments
@@ -293,7 +293,7 @@ def parabola_length_rule(
 
     Rows where the metric is undefined on the curve get +inf.
     """
-    t, w = _gauss(segments, order)
+    t, w = gauss_rule(segments, order)
     cm = field.kernel
     if cm is not None:
         out = np.empty(len(x0))
@@ -460,7 +460,7 @@ def _search_alpha(field, x0, x1, grid, alpha_tol, segments, order, start=None, g
     cm = field.kernel
     if cm is not None:
         alpha, f_alpha = np.empty(len(x0)), np.empty(len(x0))
-        t, w = _gauss(segments, order)
+        t, w = gauss_rule(segments, order)
         a, b = _rows(x0, x1)
         if start is not None:
             (s,) = _rows(start)
@@ -871,7 +871,7 @@ def parabola_verdicts(
         verdict[s] = _verdicts(_bounded_search(field, a[s], b[s]).length, lo, hi[s])
         return verdict
     grid = np.linspace(-0.5, 0.5, BOUNDED_SCAN)
-    t, w = _gauss(2, 5)
+    t, w = gauss_rule(2, 5)
     out = np.empty(s.size, dtype=np.int64)
     kernels.classify_parabolas(
         cm.g,
@@ -945,8 +945,8 @@ def _closeness_rule(short: float, straight_order: int) -> tuple:
     """The trailing arguments of the compiled closeness tests
     (:func:`curvimesh.kernels._is_close`): ``short``, the chord bound's margin and
     probes, the straight segment's rule, the search's scan, rule and tolerance."""
-    ts, ws = _gauss(2, straight_order)
-    t, w = _gauss(2, 5)
+    ts, ws = gauss_rule(2, straight_order)
+    t, w = gauss_rule(2, 5)
     grid = np.linspace(-0.5, 0.5, BOUNDED_SCAN)
     return float(short), LOWER_BOUND_MARGIN, _PROBES, ts, ws, grid, t, w, BOUNDED_TOL
 

@@ -1845,24 +1845,167 @@ def metric_areas(fn, nodes, shape, du, dv, w, out):
     at its points: Σ_k w_k sqrt(det g(x(ξ_k))) J(ξ_k), J taken relative to corner 0
     (as :func:`curvimesh.quality.metric_areas`); NaN where g is undefined."""
     for i in prange(nodes.shape[0]):
-        x0, y0 = nodes[i, 0, 0], nodes[i, 0, 1]
-        acc = 0.0
-        for k in range(w.shape[0]):
-            px = py = 0.0
-            xu = yu = xv = yv = 0.0
+        out[i] = _metric_area(fn, nodes[i], shape, du, dv, w)
+
+
+@njit(**_JIT)
+def _metric_area(fn, nodes, shape, du, dv, w):
+    """∫_t sqrt(det g) dx of one P2 triangle ``nodes`` ``(6, 2)`` (see :func:`metric_areas`)."""
+    x0, y0 = nodes[0, 0], nodes[0, 1]
+    acc = 0.0
+    for k in range(w.shape[0]):
+        px = py = 0.0
+        xu = yu = xv = yv = 0.0
+        for a in range(6):
+            x, y = nodes[a, 0], nodes[a, 1]
+            px += shape[k, a] * x
+            py += shape[k, a] * y
+            lx, ly = x - x0, y - y0
+            xu += du[k, a] * lx
+            yu += du[k, a] * ly
+            xv += dv[k, a] * lx
+            yv += dv[k, a] * ly
+        g = fn(px, py)
+        dens = math.sqrt(g[0] * g[2] - g[1] * g[1])
+        acc += dens * (xu * yv - xv * yu) * w[k]
+    return acc
+
+
+#: Corner pairs of the edges 01, 12, 20 of a triangle6 (``bezier.EDGES``).
+_EDGE_I = (0, 1, 2)
+_EDGE_J = (1, 2, 0)
+
+
+@njit(**_JIT)
+def _bezier_min(b):
+    """Exact minimum over the triangle of the quadratic Bezier triangle ``b`` ``(6,)``
+    (corners, then edges 01, 12, 20): the scalar twin of :func:`curvimesh.bezier.bezier_min`."""
+    best = min(b[0], b[1], b[2])
+    for k in range(3):
+        bij = b[3 + k]
+        p = b[_EDGE_I[k]] - bij
+        q = b[_EDGE_J[k]] - bij
+        if p > 0.0 and q > 0.0:
+            best = min(best, bij + p * q / (p + q))
+    b0, b1, b2, b01, b12, b20 = b[0], b[1], b[2], b[3], b[4], b[5]
+    a11 = b0 - 2.0 * b01 + b1
+    a22 = b0 - 2.0 * b20 + b2
+    a12 = b0 - b01 - b20 + b12
+    g1 = b01 - b0
+    g2 = b20 - b0
+    det = a11 * a22 - a12 * a12
+    un = a12 * g2 - a22 * g1
+    vn = a12 * g1 - a11 * g2
+    if det > 0.0 and a11 > 0.0 and un > 0.0 and vn > 0.0 and un + vn < det:
+        u = un / det
+        v = vn / det
+        l0, l1, l2 = 1.0 - u - v, u, v
+        value = (
+            b0 * l0 * l0 + b1 * l1 * l1 + b2 * l2 * l2
+            + 2.0 * (b01 * l0 * l1 + b12 * l1 * l2 + b20 * l2 * l0)
+        )  # fmt: skip
+        best = min(best, value)
+    return best
+
+
+@njit(**_JIT)
+def _valid_p2(nodes, gu, gv, rtol, b):
+    """Whether J > 0 on the closed P2 triangle ``nodes`` ``(6, 2)``, decided exactly as
+    :func:`curvimesh.bezier.valid_exact` decides it: J at the six nodes from the shape
+    gradients there (``gu``, ``gv`` ``(6, 6)``), its Bezier coefficients into ``b`` ``(6,)``
+    (b_i = J_i, b_ij = 2 J_ij − (J_i + J_j)/2), valid when their minimum, else the
+    exact minimum (:func:`_bezier_min`), exceeds ``rtol`` × max |b|."""
+    x0, y0 = nodes[0, 0], nodes[0, 1]
+    for k in range(6):
+        xu = yu = xv = yv = 0.0
+        for a in range(6):
+            lx, ly = nodes[a, 0] - x0, nodes[a, 1] - y0
+            xu += gu[k, a] * lx
+            yu += gu[k, a] * ly
+            xv += gv[k, a] * lx
+            yv += gv[k, a] * ly
+        b[k] = xu * yv - xv * yu
+    for k in range(3):
+        b[3 + k] = 2.0 * b[3 + k] - 0.5 * (b[_EDGE_I[k]] + b[_EDGE_J[k]])
+    top = 0.0
+    low = math.inf
+    for k in range(6):
+        top = max(top, abs(b[k]))
+        low = min(low, b[k])
+    threshold = rtol * top
+    if low > threshold:
+        return True
+    return _bezier_min(b) > threshold
+
+
+@njit(**_JIT)
+def screen_moves(
+    fn, cand, others, alpha, base, slots, lens0, t, w, shape, du, dv, aw, gu, gv,
+    rtol, shortest, longest, ok, new_len, worst,
+):  # fmt: skip
+    """The moves of a star's vertex to each of ``cand`` ``(k, 2)``, each incident edge
+    (other ends ``others`` ``(j, 2)``) keeping its offset ``alpha`` ``(j,)``: the middle
+    node (x′ + o)/2 + α (o − x′)×e₃, the length by the rule (``t``, ``w``) into
+    ``new_len`` ``(k, j)``; ``ok`` ``(k,)`` whether every triangle of the star (nodes
+    ``base`` ``(s, 6, 2)`` with ``slots`` ``(s, 6)``: −1 the vertex, e >= 0 the node of
+    incident edge e) is valid (:func:`_valid_p2`) and every incident edge in
+    [``shortest``, ``longest``]; for those, ``worst`` ``(k,)`` the least quality (4) of
+    the star (areas by the rule ``shape``, ``du``, ``dv``, ``aw``; the other edges of
+    triangle r keep their lengths ``lens0[r]``, a slot 3 + e of an incident edge takes
+    its new one). The screen of :func:`curvimesh.shift._screened`, one candidate a row."""
+    k, j, s = cand.shape[0], others.shape[0], base.shape[0]
+    nodes = np.empty((6, 2))
+    mid = np.empty((j, 2))
+    b = np.empty(6)
+    scale = 4.0 * math.sqrt(3.0)
+    for c in range(k):
+        ax, ay = cand[c, 0], cand[c, 1]
+        good = True
+        for e in range(j):
+            bx, by = others[e, 0], others[e, 1]
+            mx = 0.5 * (ax + bx) + alpha[e] * (by - ay)
+            my = 0.5 * (ay + by) + alpha[e] * (-(bx - ax))
+            mid[e, 0], mid[e, 1] = mx, my
+            length = _parabola_length(fn, ax, ay, bx, by, mx, my, t, w)
+            new_len[c, e] = length
+            if not (length <= longest and length >= shortest):
+                good = False
+        for r in range(s):
+            if not good:
+                break
             for a in range(6):
-                x, y = nodes[i, a, 0], nodes[i, a, 1]
-                px += shape[k, a] * x
-                py += shape[k, a] * y
-                lx, ly = x - x0, y - y0
-                xu += du[k, a] * lx
-                yu += du[k, a] * ly
-                xv += dv[k, a] * lx
-                yv += dv[k, a] * ly
-            g = fn(px, py)
-            dens = math.sqrt(g[0] * g[2] - g[1] * g[1])
-            acc += dens * (xu * yv - xv * yu) * w[k]
-        out[i] = acc
+                slot = slots[r, a]
+                if slot == -1:
+                    nodes[a, 0], nodes[a, 1] = ax, ay
+                elif slot >= 0:
+                    nodes[a, 0], nodes[a, 1] = mid[slot, 0], mid[slot, 1]
+                else:
+                    nodes[a, 0], nodes[a, 1] = base[r, a, 0], base[r, a, 1]
+            good = _valid_p2(nodes, gu, gv, rtol, b)
+        ok[c] = good
+        if not good:
+            continue
+        least = math.inf
+        for r in range(s):
+            for a in range(6):
+                slot = slots[r, a]
+                if slot == -1:
+                    nodes[a, 0], nodes[a, 1] = ax, ay
+                elif slot >= 0:
+                    nodes[a, 0], nodes[a, 1] = mid[slot, 0], mid[slot, 1]
+                else:
+                    nodes[a, 0], nodes[a, 1] = base[r, a, 0], base[r, a, 1]
+            area = _metric_area(fn, nodes, shape, du, dv, aw)
+            total = 0.0
+            for m in range(3):
+                slot = slots[r, 3 + m]
+                length = new_len[c, slot] if slot >= 0 else lens0[r, m]
+                total += length**2
+            q = scale * area / total
+            if not math.isfinite(q):
+                q = 0.0
+            least = min(least, q)
+        worst[c] = least
 
 
 # --------------------------------------------------------------------------- #

@@ -30,7 +30,7 @@ from curvimesh.geodesic import parabola_points, shoot
 from curvimesh.io import atomic_output
 from curvimesh.mesh import Mesh
 from curvimesh.metric import MetricField
-from curvimesh.quality import EDGE_SLOTS, edge_lengths, metric_areas, quality_from
+from curvimesh.quality import EDGE_SLOTS, edge_lengths, metric_areas_adaptive, quality_from
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -305,7 +305,9 @@ def plot_mesh_report(
     if lengths.shape != (len(mesh.edges),):
         raise ValueError(f"lengths must have shape ({len(mesh.edges)},), got {lengths.shape}")
     if qualities is None:
-        qualities = quality_from(metric_areas(field, nodes, order=8), lengths[mesh.tri_edges])
+        qualities = quality_from(
+            metric_areas_adaptive(field, nodes, rtol=1e-5), lengths[mesh.tri_edges]
+        )
     qualities = np.asarray(qualities, dtype=np.float64)
     if qualities.shape != (len(mesh.triangles),):
         raise ValueError(

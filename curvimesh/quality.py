@@ -93,6 +93,16 @@ def triangle_rule(n: int) -> tuple[NDArray, NDArray]:
     return uv, W.ravel()
 
 
+@lru_cache(maxsize=16)
+def area_rule(order: int) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """The P2 shape functions, their u and v derivatives ``(k, 6)`` and the weights ``(k,)``
+    at the points of :func:`triangle_rule` of ``order``, as the compiled
+    :func:`curvimesh.kernels.metric_areas` takes them (cached; do not modify)."""
+    uv, w = triangle_rule(order)
+    grad = p2_shape_grad(uv)
+    return p2_shape(uv), np.ascontiguousarray(grad[:, :, 0]), np.ascontiguousarray(grad[:, :, 1]), w
+
+
 def metric_areas(
     field: MetricField, nodes: NDArray, *, order: int = 4, remember: bool = True
 ) -> NDArray:
@@ -113,18 +123,85 @@ def metric_areas(
     )
 
 
+#: The nodes of a triangle6's four children under midpoint subdivision, in reference
+#: coordinates (corners, then edge midpoints 0-1, 1-2, 2-0, as :class:`Mesh` orders
+#: them): the quarter lattice (i/4, j/4). The middle child is the one of the three
+#: edge midpoints, counter-clockwise like the others.
+_QUARTERS = {
+    (i, j): (i / 4.0, j / 4.0) for i in range(5) for j in range(5 - i)
+}  # fmt: skip
+_CHILDREN = np.array(
+    [
+        [(0, 0), (2, 0), (0, 2), (1, 0), (1, 1), (0, 1)],
+        [(2, 0), (4, 0), (2, 2), (3, 0), (3, 1), (2, 1)],
+        [(0, 2), (2, 2), (0, 4), (1, 2), (1, 3), (0, 3)],
+        [(2, 0), (2, 2), (0, 2), (2, 1), (1, 2), (1, 1)],
+    ]
+)
+_CHILD_UV = np.array([[_QUARTERS[tuple(p)] for p in child] for child in _CHILDREN])
+
+#: Finest subdivision of :func:`metric_areas_adaptive` (4⁶ = 4,096 children at most).
+AREA_MAX_LEVEL = 6
+
+
+def metric_areas_adaptive(
+    field: MetricField, nodes: NDArray, *, rtol: float = 1e-5, max_level: int = AREA_MAX_LEVEL
+) -> NDArray:
+    """Metric areas of curved triangles ``(m, 6, 2)`` to ``rtol`` relative (estimated),
+    by adaptive midpoint subdivision.
+
+    Each piece is integrated by :func:`triangle_rule` of orders 4 and 8; their
+    difference estimates the error of the first. A triangle is done when the
+    estimates of its pieces add up to at most ``rtol`` × its area; otherwise its
+    pieces whose estimate exceeds their share (``rtol`` × area × their share of
+    the reference triangle) are split in four and measured again, down to
+    ``max_level``. A P2 map restricted to a piece is again a P2 map, so a piece is
+    a triangle6 whose nodes are the parent's map at the quarter points.
+
+    Where g is smooth the two rules agree on the whole triangle; where it has a
+    kink (an intersection's switch from one metric to the other, SPEC section 2),
+    a fixed rule converges slowly: on the three toys, a triangle crossing one
+    measured 0.806, 0.799, 0.798 in quality (4) with the orders 4, 8 and 16.
+    """
+    nodes = np.asarray(nodes, dtype=float).reshape(-1, 6, 2)
+    m = len(nodes)
+    total = np.zeros(m)
+    if m == 0:
+        return total
+    coarse = metric_areas(field, nodes, order=4, remember=False)
+    fine = metric_areas(field, nodes, order=8, remember=False)
+    budget = rtol * np.abs(fine)
+    owner = np.arange(m)
+    share = np.ones(m)  # each piece's share of its triangle's reference area
+    err = np.abs(fine - coarse)
+    for level in range(max_level + 1):
+        spent = np.bincount(owner, err, minlength=m)
+        done = (spent <= budget)[owner] | ~np.isfinite(err) | (level == max_level)
+        keep = done | (err <= budget[owner] * share)
+        np.add.at(total, owner[keep], fine[keep])
+        budget = budget - np.bincount(owner[keep & ~done], err[keep & ~done], minlength=m)
+        split = ~keep
+        if not split.any():
+            break
+        parent = nodes[split]
+        uv = _CHILD_UV.reshape(-1, 2)
+        nodes = p2_map(parent, uv).reshape(-1, 6, 2)
+        owner = np.repeat(owner[split], 4)
+        share = np.repeat(share[split] / 4.0, 4)
+        coarse = metric_areas(field, nodes, order=4, remember=False)
+        fine = metric_areas(field, nodes, order=8, remember=False)
+        err = np.abs(fine - coarse)
+    return total
+
+
 def _metric_areas(field: MetricField, rows: NDArray, order: int) -> NDArray:
     """:func:`metric_areas` of nodes ``(m, 12)``, computed."""
     nodes = rows.reshape(-1, 6, 2)
     uv, w = triangle_rule(order)
     cm = field.kernel
     if cm is not None:
-        grad = p2_shape_grad(uv)
         out = np.empty(len(nodes))
-        kernels.metric_areas(
-            cm.g, np.ascontiguousarray(nodes, dtype=float), p2_shape(uv),
-            np.ascontiguousarray(grad[:, :, 0]), np.ascontiguousarray(grad[:, :, 1]), w, out,
-        )  # fmt: skip
+        kernels.metric_areas(cm.g, np.ascontiguousarray(nodes, dtype=float), *area_rule(order), out)
         return out
     pts = p2_map(nodes, uv)  # (m, k, 2)
     jac = p2_jacobian(nodes, uv)  # (m, k)

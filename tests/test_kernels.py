@@ -679,7 +679,7 @@ def test_a_row_kernel_gives_the_same_results_on_one_thread_and_puts_the_threads_
     fld = load_metric(METRICS / "toy.yaml")
     a = box_points(fld, 3000, 81)
     b = a + np.random.default_rng(82).normal(scale=0.05, size=a.shape)
-    t, w = geo._gauss(2, 5)
+    t, w = geo.gauss_rule(2, 5)
     grid = np.linspace(-0.5, 0.5, 5)
     out = [np.empty(len(a)) for _ in range(4)]
     threads = numba.get_num_threads()

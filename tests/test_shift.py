@@ -10,6 +10,7 @@ from scipy.spatial import Delaunay
 from curvimesh import adapt as pipeline
 from curvimesh import shift
 from curvimesh.bezier import valid_exact
+from curvimesh.geodesic import offset_alpha
 from curvimesh.mesh import Mesh, signed_areas, to_p2_straight
 from curvimesh.metric import load_metric, load_metric_text
 from curvimesh.quality import edge_lengths, metric_areas, quality_from
@@ -267,3 +268,44 @@ def test_a_try_that_found_nothing_is_not_made_again(monkeypatch):
     assert np.asarray(again.mesh.points).tobytes() == np.asarray(res.mesh.points).tobytes()
     assert again.shifted == res.shifted and again.passes == res.passes
     assert len(calls) > with_memo
+
+
+def test_the_compiled_screen_measures_what_the_numpy_one_does():
+    # the stars of the toy mesh's triangles below 0.8 (without shifts), each vertex's
+    # candidates of a quality move and positions far out (inverted stars, edges out of
+    # bounds): the same verdicts, the same lengths bit for bit (one length kernel), the
+    # same worst qualities
+    fld = load_metric(METRICS / "toy.yaml")
+    opt = pipeline.AdaptOptions(shift=False, remove=False, repeat=False)
+    mesh = pipeline.adapt(fld, opt).mesh
+    p = np.array(mesh.points)
+    ln = lengths(fld, mesh)
+    q = quality_from(metric_areas(fld, p[mesh.triangles]), ln[mesh.tri_edges])
+    state = shift._State(mesh, shift._Incidence.of(mesh), p, ln, q, mesh.boundary_vertices)
+    checked = valid = 0
+    for t in np.flatnonzero(q < 0.8)[:12]:
+        for v in mesh.triangles[t, :3]:
+            if state.fixed[v]:
+                continue
+            star = state.star(int(v))
+            others = p[star.others]
+            here = np.broadcast_to(p[v], others.shape)
+            alpha = offset_alpha(here, others, p[mesh.edge_mid[star.edges]] - 0.5 * (here + others))
+            away = p[v] - others.mean(axis=0)
+            cand = np.vstack(
+                [
+                    shift._candidates(fld, p[v], 2.0 * away, shift.QUALITY_ANGLES),
+                    p[v] + np.outer([1.5, 3.0, -1.0], away),
+                ]
+            )
+            rule = shift._Rule.for_quality(ln[star.edges], float(q[star.tris].min()), (0.7, 1.4))
+            ok_n, len_n, worst_n = shift._screen_numpy(fld, state, star, cand, others, alpha, rule)
+            ok_c, len_c, worst_c = shift._screen_compiled(
+                fld, state, star, cand, others, alpha, rule
+            )
+            np.testing.assert_array_equal(ok_c, ok_n)
+            np.testing.assert_array_equal(len_c, len_n)
+            np.testing.assert_allclose(worst_c[ok_c], worst_n[ok_n], rtol=1e-13)
+            checked += len(cand)
+            valid += int(ok_n.sum())
+    assert checked > 300 and 0 < valid < checked
