@@ -493,6 +493,7 @@ def run_batch(
         {
             "seed": opt.seed,
             **{name: getattr(opt, name) for name in pipeline.STAGES},
+            "retry": opt.retry,
             "straight": opt.straight,
             "format": fmt,
             "jobs": jobs,
@@ -601,6 +602,8 @@ def summary_markdown(result: BatchResult) -> str:
 
 def _options_text(opts: dict) -> str:
     off = [f"--no-{k.replace('_', '-')}" for k in pipeline.STAGES if not opts.get(k, True)]
+    if not opts.get("retry", True):
+        off.append("--no-retry")
     if opts.get("straight"):
         off.append("--straight")
     return f"seed {opts.get('seed', 0)}, " + (" ".join(off) if off else "every stage on")

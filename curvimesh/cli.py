@@ -229,15 +229,27 @@ def straight_option(fn: Callable) -> Callable:
     )(fn)
 
 
+def retry_option(fn: Callable) -> Callable:
+    return click.option(
+        "--no-retry",
+        "no_retry",
+        is_flag=True,
+        help=("No second run without the hexagonal lattice when an edge longer than 1.5 is left."),
+    )(fn)
+
+
 def _options(
     *,
     seed: int = 0,
     max_vertices: int = pipeline.MAX_VERTICES,
     straight: bool = False,
+    retry: bool = True,
     **stages: bool,
 ) -> pipeline.AdaptOptions:
     """The pipeline's options; ``stages`` switches stages by their :class:`AdaptOptions` field."""
-    return pipeline.AdaptOptions(seed=seed, max_vertices=max_vertices, straight=straight, **stages)
+    return pipeline.AdaptOptions(
+        seed=seed, max_vertices=max_vertices, straight=straight, retry=retry, **stages
+    )
 
 
 #: The help of each stage's flag --no-FIELD (FIELD its AdaptOptions field).
@@ -517,6 +529,7 @@ def _require_triangles(mesh, path: str):
 @max_vertices_option
 @straight_option
 @stage_flags()
+@retry_option
 @command
 def adapt(
     ctx: Context,
@@ -528,6 +541,7 @@ def adapt(
     max_vertices,
     straight,
     stages,
+    no_retry,
 ) -> None:
     """All stages: sample | triangulate | curve | swap, in one process.
 
@@ -541,11 +555,15 @@ def adapt(
     --no-length-swaps, --no-shift, --no-remove, --no-repeat and --no-fit turn them
     off, so that the paper's method alone is `--no-hexagons --no-fill --no-relocate
     --no-intrinsic --no-insert --no-split --no-recurve --no-length-swaps --no-shift
-    --no-remove --no-repeat --no-fit`.
+    --no-remove --no-repeat --no-fit`. When an edge longer than 1.5 is left, all
+    stages run again without the hexagonal lattice and the mesh with the shorter
+    longest edge is kept (--no-retry: not).
     """
     fld = load_metric(metric_path)
     _warn_turn(ctx, fld)
-    opt = _options(seed=seed, max_vertices=max_vertices, straight=straight, **stages)
+    opt = _options(
+        seed=seed, max_vertices=max_vertices, straight=straight, retry=not no_retry, **stages
+    )
     t0 = time.perf_counter()
     res = pipeline.adapt(fld, opt, progress=ctx.progress)
     total = time.perf_counter() - t0
@@ -686,6 +704,7 @@ def circles(ctx: Context, metric_path, centres, plot_path) -> None:
 @seed_option
 @straight_option
 @stage_flags()
+@retry_option
 @command
 def batch(
     ctx: Context,
@@ -698,6 +717,7 @@ def batch(
     seed,
     straight,
     stages,
+    no_retry,
 ) -> None:
     """Adapt every metric file, write its mesh, report and pictures, and a summary.
 
@@ -709,7 +729,7 @@ def batch(
     from curvimesh.batch import parse_gate, run_batch, summary_table
 
     gates = [parse_gate(text) for text in requires]
-    opt = _options(seed=seed, straight=straight, **stages)
+    opt = _options(seed=seed, straight=straight, retry=not no_retry, **stages)
     result = run_batch(
         metric_paths,
         out_dir,

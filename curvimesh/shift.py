@@ -156,6 +156,8 @@ class ShiftResult:
     mesh: Mesh
     shifted: int
     passes: int
+    exhausted: bool = False
+    searched: int = 0
 
 
 @dataclass(frozen=True)
@@ -207,11 +209,16 @@ def shift_vertices(
     min_quality: float = 0.3,
     improve_below: float = IMPROVE_BELOW,
     max_passes: int = 20,
+    max_searches: int | None = None,
 ) -> ShiftResult:
     """Move end vertices of the edges longer than ``max_length``, then vertices of
     the triangles of quality below ``improve_below`` (module docstring); a move for a
     long edge keeps the star's worst quality at least min(its own, max(``min_quality``,
     the mesh's worst)).
+
+    With ``max_searches``, the moves stop once the candidates tried, each counted
+    with its incident edges (the shortest parabolas a full search makes), reach it
+    (``exhausted`` in the result, with the count ``searched``); the moves made stay.
 
     ``mesh`` is a valid P2 mesh; the result has the same triangles and node
     numbering, and is valid. Deterministic.
@@ -223,7 +230,9 @@ def shift_vertices(
     length = edge_lengths(field, pts, edges, mesh.edge_mid)
     quality = _qualities(field, pts[mesh.triangles], length[mesh.tri_edges], improve_below)
     floor = max(min_quality, float(quality.min()))
-    state = _State(mesh, _Incidence.of(mesh), pts, length, quality, mesh.boundary_vertices)
+    start = np.iinfo(np.int64).max if max_searches is None else max_searches
+    budget = np.array([start], dtype=np.int64)
+    state = _State(mesh, _Incidence.of(mesh), pts, length, quality, mesh.boundary_vertices, budget)
     tries = _Tries(len(mesh.triangles))
     shifted = passes = 0
     worst = float(quality.min())
@@ -231,7 +240,7 @@ def shift_vertices(
         passes += 1
         moved = 0
         for e in _ascending(-length, length > max_length):
-            if length[e] <= max_length:
+            if length[e] <= max_length or state.exhausted:
                 break
             for v, w in (edges[e], edges[e][::-1]):
                 if state.fixed[v]:
@@ -257,10 +266,13 @@ def shift_vertices(
         moved += _quality_pass(field, state, tries, (min_dist, max_length), improve_below)
         shifted += moved
         now = float(quality.min())
-        if moved == 0 or (passes >= MIN_PASSES and now <= worst):
+        if moved == 0 or state.exhausted or (passes >= MIN_PASSES and now <= worst):
             break
         worst = now
-    return ShiftResult(Mesh(pts, mesh.triangles, mesh.box), shifted, passes)
+    searched = int(start - budget[0])
+    return ShiftResult(
+        Mesh(pts, mesh.triangles, mesh.box), shifted, passes, state.exhausted, searched
+    )
 
 
 @dataclass(frozen=True)
@@ -274,6 +286,7 @@ class _State:
     length: NDArray
     quality: NDArray
     fixed: NDArray
+    budget: NDArray | None = None  # searches left (one entry, spent in place); None: no bound
 
     def star(self, v: int) -> _Star:
         return _star(self.mesh, self.inc, v)
@@ -282,6 +295,11 @@ class _State:
         """The triangles of the stars of a star's other ends (its own among them)."""
         inc = self.inc
         return np.concatenate([inc.tris[inc.start[o] : inc.start[o + 1]] for o in star.others])
+
+    @property
+    def exhausted(self) -> bool:
+        """Whether the budget of searches is spent."""
+        return self.budget is not None and bool(self.budget[0] <= 0)
 
     def healthy(self, star: _Star, max_length: float) -> bool:
         """Whether a star has no edge longer than ``max_length`` and a worst quality of
@@ -306,7 +324,13 @@ class _State:
         self.length[star.edges], self.quality[star.tris] = lens, q
 
     def move(self, field: MetricField, star: _Star, v: int, cand: NDArray, rule: _Rule) -> bool:
-        """Move v to the best admissible of ``cand`` (:func:`_best_move`); whether it moved."""
+        """Move v to the best admissible of ``cand`` (:func:`_best_move`); whether it moved.
+        Each candidate's incident edges count against the budget of searches; with
+        none left, nothing moves."""
+        if self.exhausted:
+            return False
+        if self.budget is not None:
+            self.budget[0] -= len(cand) * len(star.edges)
         got = _best_move(field, self, star, v, cand, rule)
         if got is not None:
             self.write(star, v, *got)
@@ -327,7 +351,7 @@ def _quality_pass(
     mesh, pts, length, quality = state.mesh, state.pts, state.length, state.quality
     moved = 0
     for t in _ascending(quality, quality < improve_below):
-        if quality[t] >= improve_below:
+        if quality[t] >= improve_below or state.exhausted:
             break
         corners = mesh.triangles[t, :3]
         # vertex k is opposite local edge (k + 1) % 3 (edges 0-1, 1-2, 2-0)

@@ -263,3 +263,24 @@ def test_directions_turning_within_a_unit_length_are_warned_of(tmp_path):
     assert "directions turn more than a full circle within one unit length near (0, 0)" in (
         r.stderr
     )
+
+
+@pytest.mark.parametrize(("flags", "retry"), [((), True), (("--no-retry",), False)])
+def test_the_retry_flag_reaches_the_pipeline(workdir, monkeypatch, flags, retry):
+    from curvimesh import adapt as pipeline
+
+    seen = []
+    real = pipeline.adapt
+
+    def recording(fld, opt, **kwargs):
+        seen.append(opt)
+        return real(fld, opt, **kwargs)
+
+    monkeypatch.setattr(pipeline, "adapt", recording)
+    out = workdir / f"retry{len(flags)}.msh"
+    r = CliRunner().invoke(
+        main, ["adapt", "--metric", str(workdir / "m.yaml"), "-o", str(out), *flags]
+    )
+    assert r.exit_code == 0, r.output
+    assert [opt.retry for opt in seen] == [retry]
+    assert all(opt.hexagons for opt in seen)

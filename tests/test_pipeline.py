@@ -599,3 +599,40 @@ def test_the_triangulation_of_the_filled_points_is_reused_and_is_a_fresh_ones():
     moved[-1] += 1e-3
     other = metric_delaunay_of(fld, moved, fld.box)
     assert other is not first and np.array_equal(other.points, moved)
+
+
+def _fake_run(longest: dict[bool, float], calls: list):
+    """A stand-in for one run of the stages: records the hexagons option and returns
+    a result whose defects have the longest edge ``longest[hexagons]``."""
+
+    def run(fld, opt, progress):
+        calls.append(opt.hexagons)
+        found = pipeline.Defects(0, 0, 0.7, longest[opt.hexagons], 0.5)
+        seconds = {"sample": 1.0, "triangulate": 2.0, "curve": 3.0, "swap": 4.0}
+        mesh = Mesh(np.zeros((3, 2)), np.array([[0, 1, 2]]), (0, 0, 1, 1))
+        return pipeline.AdaptResult(mesh, int(opt.hexagons), seconds, 1.0), found
+
+    return run
+
+
+@pytest.mark.parametrize(
+    ("first", "second", "options", "runs", "kept_hexagons"),
+    [
+        (1.5, 1.0, {}, [True], True),  # within 1.5: no second run
+        (2.0, 1.2, {}, [True, False], False),  # the second is better: kept
+        (2.0, 2.5, {}, [True, False], True),  # worse: the first kept
+        (2.0, 2.0, {}, [True, False], True),  # a tie: the first
+        (2.0, 1.2, {"retry": False}, [True], True),
+        (2.0, 1.2, {"hexagons": False}, [False], False),  # no lattice to leave out
+    ],
+)
+def test_a_run_leaving_a_long_edge_is_made_again_without_the_lattice(
+    monkeypatch, first, second, options, runs, kept_hexagons
+):
+    calls: list = []
+    monkeypatch.setattr(pipeline, "_run", _fake_run({True: first, False: second}, calls))
+    fld = load_metric_text("name: m\ndomain: {box: [[0, 0], [1, 1]]}\nmetric: {isotropic: 1}\n")
+    res = pipeline.adapt(fld, pipeline.AdaptOptions(**options))
+    assert calls == runs
+    assert res.swaps == int(kept_hexagons)  # the fake's swap count tells which run
+    assert res.seconds["swap"] == 4.0 * len(runs)

@@ -309,3 +309,23 @@ def test_the_compiled_screen_measures_what_the_numpy_one_does():
             checked += len(cand)
             valid += int(ok_n.sum())
     assert checked > 300 and 0 < valid < checked
+
+
+def test_a_budget_of_searches_stops_the_moves_and_keeps_those_made():
+    # the toy mesh without shifts moves 1 or more vertices (test above); with no
+    # searches allowed nothing moves, a budget the run stays under changes nothing,
+    # and a small one stops after fewer moves
+    fld = load_metric(METRICS / "toy.yaml")
+    opt = pipeline.AdaptOptions(shift=False, remove=False, repeat=False)
+    mesh = pipeline.adapt(fld, opt).mesh
+    free = shift_vertices(fld, mesh)
+    assert free.shifted >= 2 and not free.exhausted
+    none = shift_vertices(fld, mesh, max_searches=0)
+    assert none.shifted == 0 and none.exhausted
+    np.testing.assert_array_equal(np.asarray(none.mesh.points), np.asarray(mesh.points))
+    roomy = shift_vertices(fld, mesh, max_searches=10**9)
+    assert not roomy.exhausted and roomy.shifted == free.shifted
+    np.testing.assert_array_equal(np.asarray(roomy.mesh.points), np.asarray(free.mesh.points))
+    few = shift_vertices(fld, mesh, max_searches=1)
+    assert few.exhausted and few.shifted <= 1
+    assert valid_exact(np.asarray(few.mesh.points)[few.mesh.triangles]).all()
