@@ -1939,6 +1939,21 @@ def _valid_p2(nodes, gu, gv, rtol, b):
 
 
 @njit(**_JIT)
+def _star_triangle(nodes, base, slots, r, ax, ay, mid):
+    """Nodes ``(6, 2)`` of a star's triangle r into ``nodes``: its nodes ``base[r]`` but
+    the star's vertex (slot −1) at (ax, ay) and incident edge e's node (slot e) at
+    ``mid[e]``."""
+    for a in range(6):
+        slot = slots[r, a]
+        if slot == -1:
+            nodes[a, 0], nodes[a, 1] = ax, ay
+        elif slot >= 0:
+            nodes[a, 0], nodes[a, 1] = mid[slot, 0], mid[slot, 1]
+        else:
+            nodes[a, 0], nodes[a, 1] = base[r, a, 0], base[r, a, 1]
+
+
+@njit(**_JIT)
 def screen_moves(
     fn, cand, others, alpha, base, slots, lens0, t, w, shape, du, dv, aw, gu, gv,
     rtol, shortest, longest, ok, new_len, worst,
@@ -1973,28 +1988,14 @@ def screen_moves(
         for r in range(s):
             if not good:
                 break
-            for a in range(6):
-                slot = slots[r, a]
-                if slot == -1:
-                    nodes[a, 0], nodes[a, 1] = ax, ay
-                elif slot >= 0:
-                    nodes[a, 0], nodes[a, 1] = mid[slot, 0], mid[slot, 1]
-                else:
-                    nodes[a, 0], nodes[a, 1] = base[r, a, 0], base[r, a, 1]
+            _star_triangle(nodes, base, slots, r, ax, ay, mid)
             good = _valid_p2(nodes, gu, gv, rtol, b)
         ok[c] = good
         if not good:
             continue
         least = math.inf
         for r in range(s):
-            for a in range(6):
-                slot = slots[r, a]
-                if slot == -1:
-                    nodes[a, 0], nodes[a, 1] = ax, ay
-                elif slot >= 0:
-                    nodes[a, 0], nodes[a, 1] = mid[slot, 0], mid[slot, 1]
-                else:
-                    nodes[a, 0], nodes[a, 1] = base[r, a, 0], base[r, a, 1]
+            _star_triangle(nodes, base, slots, r, ax, ay, mid)
             area = _metric_area(fn, nodes, shape, du, dv, aw)
             total = 0.0
             for m in range(3):
