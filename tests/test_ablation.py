@@ -34,9 +34,11 @@ def test_each_row_is_the_mesh_of_adapt_with_those_stages(tmp_path):
     assert [r["stage"] for r in rows] == list(ablation.STAGES)
     fld = load_metric(path)
     names = [name for name in pipeline.STAGES if name != "fit"]
-    # row i has the first i stages on (row 0: the paper's method)
+    # row i has the first i stages on (row 0: the paper's method); the rows are built
+    # stage by stage, without adapt's second run (which this metric's rows with the
+    # hexagons but without the clean-up stages would start: edges over 1.5)
     for i, row in enumerate(rows):
-        opt = pipeline.AdaptOptions(**{k: j < i for j, k in enumerate(names)})
+        opt = pipeline.AdaptOptions(retry=False, **{k: j < i for j, k in enumerate(names)})
         rep = mesh_report(fld, pipeline.adapt(fld, opt).mesh)
         assert row["vertices"] == rep["vertices"]
         assert row["triangles"] == rep["triangles"]
