@@ -432,16 +432,22 @@ def adapt(
     first, found = _run(fld, opt, progress)
     if not (opt.retry and opt.hexagons and not opt.straight):
         return first
-    longest = (found or defects(fld, first.mesh)).max_length
+    longest = _longest(fld, first, found)
     if not longest > RETRY_ABOVE:
         return first
     progress(f"an edge of {longest:.2f} is left: all stages again without the hexagonal lattice")
     second, found = _run(fld, replace(opt, hexagons=False), progress)
     seconds = {k: first.seconds[k] + second.seconds[k] for k in first.seconds}
-    better = (found or defects(fld, second.mesh)).max_length < longest
+    better = _longest(fld, second, found) < longest
     kept = second if better else first
     progress(f"kept the mesh {'without' if better else 'with'} the lattice")
     return AdaptResult(kept.mesh, kept.swaps, seconds, first.metric_area)
+
+
+def _longest(fld: MetricField, run: AdaptResult, found: Defects | None) -> float:
+    """The longest edge of a run's mesh: from the defects its swap stage measured, else
+    measured now."""
+    return (found if found is not None else defects(fld, run.mesh)).max_length
 
 
 def _run(

@@ -124,21 +124,20 @@ def metric_areas(
 
 
 #: The nodes of a triangle6's four children under midpoint subdivision, in reference
-#: coordinates (corners, then edge midpoints 0-1, 1-2, 2-0, as :class:`Mesh` orders
-#: them): the quarter lattice (i/4, j/4). The middle child is the one of the three
-#: edge midpoints, counter-clockwise like the others.
-_QUARTERS = {
-    (i, j): (i / 4.0, j / 4.0) for i in range(5) for j in range(5 - i)
-}  # fmt: skip
-_CHILDREN = np.array(
-    [
-        [(0, 0), (2, 0), (0, 2), (1, 0), (1, 1), (0, 1)],
-        [(2, 0), (4, 0), (2, 2), (3, 0), (3, 1), (2, 1)],
-        [(0, 2), (2, 2), (0, 4), (1, 2), (1, 3), (0, 3)],
-        [(2, 0), (2, 2), (0, 2), (2, 1), (1, 2), (1, 1)],
-    ]
-)
-_CHILD_UV = np.array([[_QUARTERS[tuple(p)] for p in child] for child in _CHILDREN])
+#: coordinates ``(24, 2)``, six a child (corners, then edge midpoints 0-1, 1-2, 2-0, as
+#: :class:`Mesh` orders them): points of the quarter lattice (i/4, j/4). The middle
+#: child is the one of the three edge midpoints, counter-clockwise like the others.
+_CHILD_UV = (
+    np.array(
+        [
+            [(0, 0), (2, 0), (0, 2), (1, 0), (1, 1), (0, 1)],
+            [(2, 0), (4, 0), (2, 2), (3, 0), (3, 1), (2, 1)],
+            [(0, 2), (2, 2), (0, 4), (1, 2), (1, 3), (0, 3)],
+            [(2, 0), (2, 2), (0, 2), (2, 1), (1, 2), (1, 1)],
+        ]
+    )
+    / 4.0
+).reshape(-1, 2)
 
 #: Finest subdivision of :func:`metric_areas_adaptive` (4⁶ = 4,096 children at most).
 AREA_MAX_LEVEL = 6
@@ -183,9 +182,7 @@ def metric_areas_adaptive(
         split = ~keep
         if not split.any():
             break
-        parent = nodes[split]
-        uv = _CHILD_UV.reshape(-1, 2)
-        nodes = p2_map(parent, uv).reshape(-1, 6, 2)
+        nodes = p2_map(nodes[split], _CHILD_UV).reshape(-1, 6, 2)
         owner = np.repeat(owner[split], 4)
         share = np.repeat(share[split] / 4.0, 4)
         coarse = metric_areas(field, nodes, order=4, remember=False)
