@@ -350,6 +350,21 @@ def parse_expression(
     return result.expr
 
 
+def split_list_hint(items: object) -> str:
+    """A hint for a YAML flow list whose items are pieces of expressions: YAML splits
+    ``[min(a, b), c]`` at every comma, into ``'min(a'``, ``'b)'`` and ``c``. The hint
+    (with a leading ``"; "``) when an item's parentheses do not balance, else ``""``."""
+    if not isinstance(items, list):
+        return ""
+    for item in items:
+        if isinstance(item, str) and item.count("(") != item.count(")"):
+            return (
+                "; YAML splits a [...] list at every comma: quote an expression with a comma,"
+                " as 'min(a, b)'"
+            )
+    return ""
+
+
 def expression_symbols(expr: sympy.Expr) -> set[str]:
     """The names of the free symbols of ``expr``.
 

@@ -120,7 +120,12 @@ from numpy.typing import NDArray
 
 from curvimesh import kernels
 from curvimesh.errors import ExpressionError, InputError, MetricError
-from curvimesh.expressions import parse_expression, scalar_function, smooth_minmax
+from curvimesh.expressions import (
+    parse_expression,
+    scalar_function,
+    smooth_minmax,
+    split_list_hint,
+)
 from curvimesh.gradation import GradedGrid, graded_grid, grid_nodes
 from curvimesh.tensors import intersect_components
 
@@ -773,7 +778,9 @@ def parse_interpolation(
     width = min(box[2] - box[0], box[3] - box[1])
     raw_sizes = body.get("sizes", [1e-4 * length, 0.5 * width])
     if not isinstance(raw_sizes, list) or len(raw_sizes) != 2:
-        raise fail("sizes", f"must be a list [HMIN, HMAX], got {raw_sizes!r}")
+        raise fail(
+            "sizes", f"must be a list [HMIN, HMAX], got {raw_sizes!r}{split_list_hint(raw_sizes)}"
+        )
     try:
         hmin, hmax = (_constant(v, names, "") for v in raw_sizes)
     except ValueError as exc:

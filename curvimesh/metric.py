@@ -40,7 +40,13 @@ from sympy.printing.numpy import NumPyPrinter
 
 from curvimesh import kernels
 from curvimesh.errors import ExpressionError, MetricError
-from curvimesh.expressions import FUNCTIONS, parse_expression, scalar_function, smooth_minmax
+from curvimesh.expressions import (
+    FUNCTIONS,
+    parse_expression,
+    scalar_function,
+    smooth_minmax,
+    split_list_hint,
+)
 from curvimesh.interpolation import InterpolationMetric, parse_interpolation
 from curvimesh.tensors import intersect_components, intersect_with_derivatives
 
@@ -868,7 +874,10 @@ class _Loader:
             self.check_keys(body, ("sizes", "angle"), fkey)
             sizes = body.get("sizes")
             if not isinstance(sizes, list) or len(sizes) != 2:
-                raise self.fail(f"{fkey}.sizes", f"must be a list [H1, H2], got {_short(sizes)}")
+                raise self.fail(
+                    f"{fkey}.sizes",
+                    f"must be a list [H1, H2], got {_short(sizes)}{split_list_hint(sizes)}",
+                )
             if "angle" not in body:
                 raise self.fail(f"{fkey}.angle", "missing")
             h1 = self.size(sizes[0], names, f"{fkey}.sizes[0]")
@@ -884,7 +893,9 @@ class _Loader:
             return [parse_interpolation(body, names, key=fkey, box=self.domain, source=self.source)]
         # tensor
         if not isinstance(body, list) or len(body) != 3:
-            raise self.fail(fkey, f"must be a list [G11, G12, G22], got {_short(body)}")
+            raise self.fail(
+                fkey, f"must be a list [G11, G12, G22], got {_short(body)}{split_list_hint(body)}"
+            )
         g = tuple(self.expr(v, names, f"{fkey}[{i}]") for i, v in enumerate(body))
         return [Component(g, (), fkey)]  # type: ignore[arg-type]
 

@@ -155,6 +155,15 @@ METRIC_CASES = {
     "sizes-three": ("metric: {eigen: {sizes: [1, 2, 3], angle: 0}}\n", ["[H1, H2], got [1, 2, 3]"]),
     "sizes-scalar": ("metric: {eigen: {sizes: 0.1, angle: 0}}\n", ["metric.eigen.sizes"]),
     "tensor-two": ("metric: {tensor: [1, 0]}\n", ["metric.tensor: must be a list [G11"]),
+    # YAML splits a flow list at every comma, inside an expression's parentheses too
+    "sizes-unquoted-comma": (
+        "metric: {eigen: {sizes: [min(0.01 + x, 0.1), 0.1], angle: 0}}\n",
+        ["metric.eigen.sizes: must be a list [H1, H2]", "quote an expression with a comma"],
+    ),
+    "tensor-unquoted-comma": (
+        "metric: {tensor: [max(1, x), 0, max(1, y)]}\n",
+        ["metric.tensor: must be a list [G11", "quote an expression with a comma"],
+    ),
     "long-list": ("metric: {tensor: [" + ", ".join(["1"] * 5000) + "]}\n", ["..."]),
     # parameters that are not numbers
     "param-string": ("parameters: {h: abc}\nmetric: {isotropic: h}\n", ["parameters.h:", "'abc'"]),
