@@ -1,12 +1,12 @@
 """What each optimisation beyond the paper's method adds, per metric.
 
-For every metric file, twelve meshes, each stage added to the previous ones:
+For every metric file, thirteen meshes, each stage added to the previous ones:
 
 * ``paper``: the paper's method alone (Algorithm 1 sampling, Delaunay in
   the metric, geodesic P2 edges with backtracking, curvilinear swaps):
   ``adapt --no-hexagons --no-fill --no-relocate --no-intrinsic --no-insert --no-split
-  --no-recurve --no-length-swaps --no-shift --no-remove --no-repeat`` (``--no-fit`` too,
-  which only acts on ``interpolation`` metrics);
+  --no-recurve --no-length-swaps --no-shift --no-remove --no-repeat --no-bend``
+  (``--no-fit`` too, which only acts on ``interpolation`` metrics);
 * ``+ hexagons``: points sampled on a hexagonal lattice where the metric's
   frame turns slowly (:mod:`curvimesh.sampling`);
 * ``+ fill``: and gap filling of the point cloud (:mod:`curvimesh.fill`);
@@ -24,13 +24,16 @@ For every metric file, twelve meshes, each stage added to the previous ones:
   still longer than 1.4 removed (:mod:`curvimesh.remove`);
 * ``+ repeat``: and the swaps and clean-up stages repeated while edges longer
   than 1.4 or triangles below quality 0.3 are left
-  (:func:`curvimesh.adapt.repeat_passes`): every stage on, the default ``adapt``
+  (:func:`curvimesh.adapt.repeat_passes`);
+* ``+ bend``: and the nodes of the edges of the triangles still below quality 0.8
+  bent off their parabolas where that raises the worse quality of their two
+  triangles (:mod:`curvimesh.bend`): every stage on, the default ``adapt``
   without its second run (``--no-retry``: the rows are built stage by stage; that run
   starts only where an edge longer than 1.5 is left).
 
 The stages are shared where they coincide (three samplings: the paper's,
 with hexagons, with hexagons and filling; one curving of each and of the
-relocated triangulation), which gives the same meshes as twelve separate
+relocated triangulation), which gives the same meshes as thirteen separate
 ``adapt`` runs. Every figure is from the
 report of SPEC section 4 (:func:`curvimesh.report.mesh_report`); seconds
 are the adaptation alone, for the whole pipeline of each row.
@@ -91,7 +94,7 @@ def _row(fld, stage: str, mesh, seconds: float, area: float) -> dict:
 
 
 def ablate(metric_path: str, seed: int = 0) -> dict:
-    """The twelve rows of one metric file (see the module docstring)."""
+    """The thirteen rows of one metric file (see the module docstring)."""
     fld = load_metric(metric_path)
     pipeline.check_size(fld, pipeline.MAX_VERTICES)
     area = density_integral(fld)  # the report's metric area, computed once
@@ -121,7 +124,7 @@ def ablate(metric_path: str, seed: int = 0) -> dict:
 
 
 def table(results: list[dict]) -> str:
-    """The markdown table of all metrics, twelve rows each."""
+    """The markdown table of all metrics, thirteen rows each."""
     head = (
         "| metric | stages | vertices | triangles | length min | length max | in [0.7, 1.4] "
         "| quality min | quality mean | valid | efficiency | seconds |\n"
@@ -146,8 +149,8 @@ def section(results: list[dict], seed: int) -> str:
         "Each optimisation added in turn to the paper's method (`bench/ablation.py`, "
         f"seed {seed}): *paper* is `adapt --no-hexagons --no-fill --no-relocate "
         "--no-intrinsic --no-insert --no-split --no-recurve --no-length-swaps --no-shift "
-        "--no-remove --no-repeat`, *+ hexagons* samples the points on a hexagonal lattice "
-        "where the metric's directions turn less than 10° per unit length, "
+        "--no-remove --no-repeat --no-bend`, *+ hexagons* samples the points on a hexagonal "
+        "lattice where the metric's directions turn less than 10° per unit length, "
         "*+ fill* adds gap filling, *+ relocate* vertex relocation, *+ intrinsic* "
         "intrinsic Delaunay flips where the metric's directions turn 60° or more per unit "
         "length, *+ insert* "
@@ -157,7 +160,9 @@ def section(results: list[dict], seed: int) -> str:
         "triangles of quality below 0.8, *+ remove* vertices of the triangles still below "
         "0.3 and of the edges still longer than 1.4 removed, *+ repeat* the swaps and "
         "clean-up stages repeated while edges longer than 1.4 or triangles below quality "
-        "0.3 are left (the default `adapt`, the meshes above; its second run without the "
+        "0.3 are left, *+ bend* the nodes of the edges of the triangles still below "
+        "quality 0.8 bent off their parabolas where that raises the worse of their two "
+        "triangles (the default `adapt`, the meshes above; its second run without the "
         "hexagonal lattice, made where an edge longer than 1.5 is left, starts on none of "
         "them). Seconds are the whole adaptation of each row.\n\n"
         f"{table(results)}\n{END}\n"

@@ -17,6 +17,7 @@ import numpy as np
 
 from curvimesh import curve as _curve
 from curvimesh import swap as _swap
+from curvimesh.bend import bend_nodes
 from curvimesh.boundary import discretize_box
 from curvimesh.errors import InputError
 from curvimesh.fill import fill_gaps
@@ -64,6 +65,7 @@ class AdaptOptions:
     shift: bool = True
     remove: bool = True
     repeat: bool = True
+    bend: bool = True
     fit: bool = True
     retry: bool = True
 
@@ -83,6 +85,7 @@ STAGES = (
     "shift",
     "remove",
     "repeat",
+    "bend",
     "fit",
 )
 
@@ -158,8 +161,8 @@ def curve(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> 
 class SwapStage:
     """The mesh after the swap stage, and its counts of swaps, insertions, splits,
     swap rounds, re-curved edge nodes, node moves fitting an interpolation metric's
-    function, vertex shifts, vertex removals, intrinsic flips and repeated passes of
-    the clean-up stages."""
+    function, vertex shifts, vertex removals, intrinsic flips, repeated passes of
+    the clean-up stages and edge nodes bent for quality."""
 
     mesh: Mesh
     swaps: int
@@ -168,6 +171,7 @@ class SwapStage:
     inserted: int = 0
     recurved: int = 0
     fitted: int = 0
+    bent: int = 0
     shifted: int = 0
     removed: int = 0
     flips: int = 0
@@ -182,7 +186,7 @@ class SwapStage:
             f"{self.swaps} swaps in {self.rounds} rounds, {self.inserted} insertions, "
             f"{self.splits} splits, {self.recurved} re-curved nodes, {self.shifted} shifts, "
             f"{self.removed} removals, {self.passes} repeated passes, "
-            f"{self.fitted} fitting moves"
+            f"{self.bent} bent nodes, {self.fitted} fitting moves"
         )
 
 
@@ -233,7 +237,10 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
     off), while edges longer than 1.4 or triangles of quality below 0.3 are left,
     at most :data:`REPEAT_PASSES` times:
     the last swaps again, on the mesh that the shifts and removals changed, and
-    the clean-up stages again (see :func:`repeat_passes`). Last,
+    the clean-up stages again (see :func:`repeat_passes`). Then (unless
+    ``options.bend`` is off) the nodes of the edges of the triangles still below
+    quality 0.8 bent off their parabolas where that raises the worse quality of
+    their two triangles (:mod:`curvimesh.bend`). Last,
     when the metric is an ``interpolation``
     form (and unless ``options.fit`` is off), edge nodes moved to lower the
     interpolation error of its function (:mod:`curvimesh.fit`).
@@ -258,14 +265,20 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
     found = None
     if opt.repeat:
         mesh, passes, found = repeat_passes(fld, mesh, opt, tally)
+    bent = 0
+    if opt.bend:
+        br = bend_nodes(fld, mesh, min_dist=opt.sampling.min_dist)
+        mesh, bent = br.mesh, br.bent
     fitted = 0
     function = fld.error_function
     if opt.fit and function is not None:
         fr = fit_nodes(function, mesh)
         mesh, fitted = fr.mesh, fr.moves
-    if fitted:
+    if fitted or bent:
         found = None
-    return SwapStage(mesh, fitted=fitted, flips=flips, passes=passes, defects=found, **vars(tally))
+    return SwapStage(
+        mesh, fitted=fitted, bent=bent, flips=flips, passes=passes, defects=found, **vars(tally)
+    )
 
 
 def _clean_up(fld: MetricField, mesh: Mesh, opt: AdaptOptions, tally: _Tally) -> Mesh:

@@ -50,7 +50,13 @@ from curvimesh.errors import CurvimeshError, InputError
 from curvimesh.io import atomic_output, atomic_write_text, write_mesh
 from curvimesh.mesh import Mesh
 from curvimesh.metric import MetricField, load_metric
-from curvimesh.quality import edge_lengths, metric_areas_adaptive, quality_from
+from curvimesh.quality import (
+    COUNT_RTOL,
+    REPORT_RTOL,
+    edge_lengths,
+    metric_areas_adaptive,
+    quality_from,
+)
 from curvimesh.report import UNIT_RANGE, format_report, mesh_report
 
 __all__ = [
@@ -274,9 +280,10 @@ def _lengths_and_qualities(field_: MetricField, mesh: Mesh) -> tuple[NDArray, ND
     if mesh.order != 2:
         return None
     pts = np.asarray(mesh.points)
-    lengths = edge_lengths(field_, pts, mesh.edges, mesh.edge_mid, rtol=1e-4)
+    lengths = edge_lengths(field_, pts, mesh.edges, mesh.edge_mid, rtol=COUNT_RTOL)
     qualities = quality_from(
-        metric_areas_adaptive(field_, pts[mesh.triangles], rtol=1e-5), lengths[mesh.tri_edges]
+        metric_areas_adaptive(field_, pts[mesh.triangles], rtol=REPORT_RTOL),
+        lengths[mesh.tri_edges],
     )
     return lengths, qualities
 

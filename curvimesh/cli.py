@@ -279,6 +279,9 @@ STAGE_HELP = {
         "No repeated passes of the swaps and the clean-up stages while edges longer than "
         "1.4 or triangles below quality 0.3 are left."
     ),
+    "bend": (
+        "No edge nodes bent off their parabolas to raise the triangles left below quality 0.8."
+    ),
     "fit": "No edge nodes fitted to the function of an interpolation metric.",
 }
 
@@ -498,8 +501,9 @@ def swap(
     """Stage 4: curvilinear edge swaps driven by quality (4) and edge lengths,
     re-curving, vertex insertions and splits at the long edges, and swaps and
     re-curving again, vertex shifts at the edges left long and the flat triangles,
-    vertex removals at the flat triangles left; for an interpolation
-    metric, edge nodes fitted to its function."""
+    vertex removals at the flat triangles left, edge nodes bent to raise the
+    triangles left below quality 0.8; for an interpolation metric, edge nodes
+    fitted to its function."""
     fld = load_metric(metric_path)
     mesh = _require_triangles(_read(mesh_path, fld), mesh_path)
     if mesh.order != 2:
@@ -549,15 +553,15 @@ def adapt(
     points where the metric's directions turn slowly, gap filling, vertex relocation,
     intrinsic flips where the metric's directions turn fast, vertex insertion,
     edge splits, re-curving, swaps for lengths, vertex shifts, vertex removals,
-    repeated passes of these where defects remain, and for an interpolation metric
-    edge nodes fitted to its function) run by default; --no-hexagons, --no-fill,
-    --no-relocate, --no-intrinsic, --no-insert, --no-split, --no-recurve,
-    --no-length-swaps, --no-shift, --no-remove, --no-repeat and --no-fit turn them
-    off, so that the paper's method alone is `--no-hexagons --no-fill --no-relocate
-    --no-intrinsic --no-insert --no-split --no-recurve --no-length-swaps --no-shift
-    --no-remove --no-repeat --no-fit`. When an edge longer than 1.5 is left, all
-    stages run again without the hexagonal lattice and the mesh with the shorter
-    longest edge is kept (--no-retry: not).
+    repeated passes of these where defects remain, edge nodes bent for quality, and
+    for an interpolation metric edge nodes fitted to its function) run by default;
+    --no-hexagons, --no-fill, --no-relocate, --no-intrinsic, --no-insert, --no-split,
+    --no-recurve, --no-length-swaps, --no-shift, --no-remove, --no-repeat, --no-bend
+    and --no-fit turn them off, so that the paper's method alone is `--no-hexagons
+    --no-fill --no-relocate --no-intrinsic --no-insert --no-split --no-recurve
+    --no-length-swaps --no-shift --no-remove --no-repeat --no-bend --no-fit`. When an
+    edge longer than 1.5 is left, all stages run again without the hexagonal lattice
+    and the mesh with the shorter longest edge is kept (--no-retry: not).
     """
     fld = load_metric(metric_path)
     _warn_turn(ctx, fld)

@@ -59,7 +59,13 @@ from curvimesh.freenode import shortest_parabola
 from curvimesh.geodesic import parabola_points
 from curvimesh.mesh import Mesh, local_edge, rotate_triangles
 from curvimesh.metric import MetricField
-from curvimesh.quality import edge_lengths, edge_lengths_fast, metric_areas, quality_from
+from curvimesh.quality import (
+    COUNT_RTOL,
+    edge_lengths,
+    edge_lengths_fast,
+    metric_areas,
+    quality_from,
+)
 from curvimesh.sampling import close_to_index, search_halfwidths, search_regions, too_close
 from curvimesh.spatial import PointIndex, pairs_within_boxes
 
@@ -196,7 +202,7 @@ def _insert_round(
     pts = np.asarray(mesh.points)
     tris = np.asarray(mesh.triangles)
     et, tri_edges = mesh.edge_tris, mesh.tri_edges
-    length = edge_lengths(field, pts, mesh.edges, mesh.edge_mid, rtol=1e-4)
+    length = edge_lengths(field, pts, mesh.edges, mesh.edge_mid, rtol=COUNT_RTOL)
     seeds = np.flatnonzero((length > max_length) & (et[:, 1] >= 0))
     ns = len(seeds)
     if ns == 0:

@@ -30,7 +30,14 @@ from curvimesh.geodesic import parabola_points, shoot
 from curvimesh.io import atomic_output
 from curvimesh.mesh import Mesh
 from curvimesh.metric import MetricField
-from curvimesh.quality import EDGE_SLOTS, edge_lengths, metric_areas_adaptive, quality_from
+from curvimesh.quality import (
+    COUNT_RTOL,
+    EDGE_SLOTS,
+    REPORT_RTOL,
+    edge_lengths,
+    metric_areas_adaptive,
+    quality_from,
+)
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -289,8 +296,8 @@ def plot_mesh_report(
 
     ``lengths`` ``(E,)`` follow :attr:`Mesh.edges`, ``qualities`` ``(m,)``
     the triangles; either is computed when not given (lengths to 1e-4
-    relative). The format follows the extension of ``path``; the file is
-    written atomically.
+    relative, :data:`curvimesh.quality.COUNT_RTOL`; areas to the report's 1e-5).
+    The format follows the extension of ``path``; the file is written atomically.
     """
     if len(mesh.triangles) == 0:
         raise ValueError("the mesh has no triangles")
@@ -300,13 +307,13 @@ def plot_mesh_report(
     nodes = _triangle_nodes(mesh)
     if lengths is None:
         mids = mesh.edge_mid if mesh.order == 2 else None
-        lengths = edge_lengths(field, pts, mesh.edges, mids, rtol=1e-4)
+        lengths = edge_lengths(field, pts, mesh.edges, mids, rtol=COUNT_RTOL)
     lengths = np.asarray(lengths, dtype=np.float64)
     if lengths.shape != (len(mesh.edges),):
         raise ValueError(f"lengths must have shape ({len(mesh.edges)},), got {lengths.shape}")
     if qualities is None:
         qualities = quality_from(
-            metric_areas_adaptive(field, nodes, rtol=1e-5), lengths[mesh.tri_edges]
+            metric_areas_adaptive(field, nodes, rtol=REPORT_RTOL), lengths[mesh.tri_edges]
         )
     qualities = np.asarray(qualities, dtype=np.float64)
     if qualities.shape != (len(mesh.triangles),):

@@ -24,6 +24,17 @@ from curvimesh.geodesic import parabola_length, parabola_length_rule
 from curvimesh.memo import memo_table, memoised
 from curvimesh.metric import MetricField
 
+#: Relative accuracy of the figures a user reads: the report's edge lengths and metric
+#: areas (:mod:`curvimesh.report`), the areas behind the qualities of ``batch``'s summary
+#: and of the plot's colours, and the re-measured triangles of the quality pass
+#: (:mod:`curvimesh.shift`), so that all of them show the report's worst quality.
+REPORT_RTOL = 1e-5
+
+#: Relative accuracy of edge lengths where they are counted rather than quoted to the
+#: last digit: ``batch``'s summary, the plot's histogram, the long edges that insertion
+#: and splitting work on.
+COUNT_RTOL = 1e-4
+
 #: A metric whose compiled evaluation takes at least this many nanoseconds a point has
 #: its areas and edge lengths remembered (:func:`remembers`); below, looking a measure
 #: up costs about what computing it does. As :func:`remembers` times them: the toy,
@@ -144,7 +155,11 @@ AREA_MAX_LEVEL = 6
 
 
 def metric_areas_adaptive(
-    field: MetricField, nodes: NDArray, *, rtol: float = 1e-5, max_level: int = AREA_MAX_LEVEL
+    field: MetricField,
+    nodes: NDArray,
+    *,
+    rtol: float = REPORT_RTOL,
+    max_level: int = AREA_MAX_LEVEL,
 ) -> NDArray:
     """Metric areas of curved triangles ``(m, 6, 2)`` to ``rtol`` relative (estimated),
     by adaptive midpoint subdivision.
@@ -208,8 +223,29 @@ def _metric_areas(field: MetricField, rows: NDArray, order: int) -> NDArray:
     return (dens * jac) @ w
 
 
+def qualities(
+    field: MetricField, nodes: NDArray, lens: NDArray, *, remeasure_below: float
+) -> NDArray:
+    """Qualities (4) ``(m,)`` of curved triangles ``(m, 6, 2)`` with edge lengths ``(m, 3)``:
+    by the fixed rule of order 4 (:func:`metric_areas`), and those below
+    ``remeasure_below`` again with their areas to :data:`REPORT_RTOL`
+    (:func:`metric_areas_adaptive`): where the metric has a kink, the fixed rule can be
+    off by 0.01 in quality, and the loops that aim at a quality must see it as the
+    report will."""
+    q = quality_from(metric_areas(field, nodes), lens)
+    near = np.flatnonzero(q < remeasure_below)
+    if near.size:
+        q[near] = quality_from(metric_areas_adaptive(field, nodes[near]), lens[near])
+    return q
+
+
 def edge_lengths(
-    field: MetricField, points: NDArray, edges: NDArray, mids: NDArray | None, *, rtol: float = 1e-5
+    field: MetricField,
+    points: NDArray,
+    edges: NDArray,
+    mids: NDArray | None,
+    *,
+    rtol: float = REPORT_RTOL,
 ) -> NDArray:
     """Metric lengths ``(E,)`` of edges ``(E, 2)`` through middle nodes ``mids`` ``(E,)``.
 

@@ -1,7 +1,8 @@
 """The figures a user checks on a mesh in a metric (SPEC section 4).
 
 :func:`mesh_report` returns the JSON object of SPEC section 4: counts, edge
-lengths of the curved edges (to 1e-5 relative), quality of equation (4) (metric
+lengths of the curved edges (to 1e-5 relative:
+:data:`curvimesh.quality.REPORT_RTOL`), quality of equation (4) (metric
 areas to 1e-5 relative too: :func:`curvimesh.quality.metric_areas_adaptive`),
 validity decided exactly, the straight-sided version's invalid count (paper
 figure 8), metric area, ideal triangle count and efficiency; with a function,
@@ -20,7 +21,7 @@ from curvimesh.bezier import valid_exact
 from curvimesh.interpolation_error import interpolation_error
 from curvimesh.mesh import Mesh, signed_areas, to_p2_straight
 from curvimesh.metric import UNIT_TRIANGLE_AREA, MetricField, density_integral
-from curvimesh.quality import edge_lengths, metric_areas_adaptive, quality_from
+from curvimesh.quality import REPORT_RTOL, edge_lengths, metric_areas_adaptive, quality_from
 
 #: The range of a quasi-unit edge (paper section 1).
 UNIT_RANGE = (0.7, 1.4)
@@ -45,10 +46,10 @@ def mesh_report(
     pts = np.asarray(mesh.points)
     edges = mesh.edges
     mids = mesh.edge_mid if mesh.order == 2 else None
-    lengths = edge_lengths(field, pts, edges, mids, rtol=1e-5)
+    lengths = edge_lengths(field, pts, edges, mids, rtol=REPORT_RTOL)
     p2 = mesh if mesh.order == 2 else to_p2_straight(mesh)
     nodes = np.asarray(p2.points)[p2.triangles]
-    area = metric_areas_adaptive(field, nodes, rtol=1e-5)
+    area = metric_areas_adaptive(field, nodes, rtol=REPORT_RTOL)
     q = quality_from(area, lengths[mesh.tri_edges])
     valid = valid_exact(nodes)
     straight_bad = int((signed_areas(pts, mesh.corners) <= 0).sum())

@@ -30,8 +30,8 @@ lengths checked again to 1e-5 before the move).
 
 Each pass then visits the triangles of quality (4) below ``improve_below``
 (:data:`IMPROVE_BELOW`), worst first, their metric areas measured to the
-report's accuracy (:data:`AREA_RTOL`, and so are the stars of the moves it
-keeps), lest a kink of the metric hide a triangle below it from the loops'
+report's accuracy (:func:`curvimesh.quality.qualities`, and so are the stars of the
+moves it keeps), lest a kink of the metric hide a triangle below it from the loops'
 fixed rule. A swap guarded against short edges can
 leave one: a vertex almost on the opposite edge, its two edges near 0.7 and
 the third near 1.4; where the hexagonal lattices of the sampling
@@ -89,7 +89,7 @@ from curvimesh.quality import (
     edge_lengths,
     edge_lengths_fast,
     metric_areas,
-    metric_areas_adaptive,
+    qualities,
     quality_from,
 )
 
@@ -115,16 +115,12 @@ QUALITY_ANGLES = (*ANGLES, np.pi)
 IMPROVE_BELOW = 0.8
 
 #: Triangles of quality (4) below :data:`IMPROVE_BELOW` plus this, measured with the
-#: fixed rule of the loops, are measured again to :data:`AREA_RTOL`: where the metric
+#: fixed rule of the loops, are measured again to the report's accuracy
+#: (:func:`curvimesh.quality.qualities`): where the metric
 #: has a kink, the fixed rule can be off by 0.01 in quality (the three toys at 997
 #: vertices: 0.020 at most, 0.0085 at 9,644), and the pass must see the triangles
 #: the report will find below :data:`IMPROVE_BELOW`.
 REMEASURE_MARGIN = 0.05
-
-#: Relative accuracy of the metric areas of the triangles a pass works on and of the
-#: stars of the moves it makes (:func:`curvimesh.quality.metric_areas_adaptive`): the
-#: report's (:mod:`curvimesh.report`).
-AREA_RTOL = 1e-5
 
 #: Fractions of the optimal offset tried for the moved vertex's edges, in order.
 BACKTRACK = (1.0, 0.5, 0.25, 0.0)
@@ -228,11 +224,17 @@ def shift_vertices(
     pts = np.array(mesh.points)
     edges = mesh.edges
     length = edge_lengths(field, pts, edges, mesh.edge_mid)
-    quality = _qualities(field, pts[mesh.triangles], length[mesh.tri_edges], improve_below)
+    quality = qualities(
+        field, pts[mesh.triangles], length[mesh.tri_edges],
+        remeasure_below=improve_below + REMEASURE_MARGIN,
+    )  # fmt: skip
     floor = max(min_quality, float(quality.min()))
     start = np.iinfo(np.int64).max if max_searches is None else max_searches
     budget = np.array([start], dtype=np.int64)
-    state = _State(mesh, _Incidence.of(mesh), pts, length, quality, mesh.boundary_vertices, budget)
+    state = _State(
+        mesh, _Incidence.of(mesh), pts, length, quality, mesh.boundary_vertices, budget,
+        improve_below,
+    )  # fmt: skip
     tries = _Tries(len(mesh.triangles))
     shifted = passes = 0
     worst = float(quality.min())
@@ -287,6 +289,7 @@ class _State:
     quality: NDArray
     fixed: NDArray
     budget: NDArray | None = None  # searches left (one entry, spent in place); None: no bound
+    improve_below: float = IMPROVE_BELOW  # the quality pass's threshold (re-measuring below it)
 
     def star(self, v: int) -> _Star:
         return _star(self.mesh, self.inc, v)
@@ -644,18 +647,6 @@ def _node_gradients() -> tuple[NDArray, NDArray]:
     return np.ascontiguousarray(grad[:, :, 0]), np.ascontiguousarray(grad[:, :, 1])
 
 
-def _qualities(field: MetricField, nodes: NDArray, lens: NDArray, improve_below: float) -> NDArray:
-    """Qualities (4) ``(m,)`` of triangles ``(m, 6, 2)`` with edge lengths ``(m, 3)``: by the
-    loops' fixed rule, and those below ``improve_below`` + :data:`REMEASURE_MARGIN`
-    again with their areas to :data:`AREA_RTOL`."""
-    q = quality_from(metric_areas(field, nodes), lens)
-    near = np.flatnonzero(q < improve_below + REMEASURE_MARGIN)
-    if near.size:
-        area = metric_areas_adaptive(field, nodes[near], rtol=AREA_RTOL)
-        q[near] = quality_from(area, lens[near])
-    return q
-
-
 def _worst_qualities(
     field: MetricField, state: _State, star: _Star, nodes: NDArray, new_len: NDArray
 ) -> NDArray:
@@ -730,7 +721,7 @@ def _best_move(
             continue
         lens = lens0.copy()
         lens[inc >= 0] = exact[inc[inc >= 0]]
-        q = _qualities(field, nodes, lens, IMPROVE_BELOW)
+        q = qualities(field, nodes, lens, remeasure_below=state.improve_below + REMEASURE_MARGIN)
         if rule.quality_ok(q):
             return cand[i], mids, exact, q
     return None

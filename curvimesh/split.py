@@ -34,7 +34,13 @@ from curvimesh.freenode import shortest_parabola
 from curvimesh.geodesic import parabola_points
 from curvimesh.mesh import Mesh, independent_flips, local_edge, rotate_triangles
 from curvimesh.metric import MetricField
-from curvimesh.quality import edge_lengths, edge_lengths_fast, metric_areas, quality_from
+from curvimesh.quality import (
+    COUNT_RTOL,
+    edge_lengths,
+    edge_lengths_fast,
+    metric_areas,
+    quality_from,
+)
 from curvimesh.sampling import close_to_index, search_regions
 from curvimesh.spatial import PointIndex
 
@@ -75,7 +81,7 @@ def _split_round(
     pts = np.asarray(mesh.points)
     tris = np.asarray(mesh.triangles)
     edges, mids = mesh.edges, mesh.edge_mid
-    length = edge_lengths(field, pts, edges, mids, rtol=1e-4)
+    length = edge_lengths(field, pts, edges, mids, rtol=COUNT_RTOL)
     cand = np.flatnonzero(length > max_length)
     if cand.size == 0:
         return mesh, 0

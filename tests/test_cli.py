@@ -187,6 +187,7 @@ def test_check_metric_prints_the_ideal_count():
         ("--no-shift",),
         ("--no-remove",),
         ("--no-repeat",),
+        ("--no-bend",),
         (
             "--no-hexagons",
             "--no-fill",
