@@ -44,7 +44,7 @@ has changed. Rounds repeat while an edge moves, at most ``max_rounds``. Lengths
 and areas are measured to the report's accuracy
 (:data:`curvimesh.quality.REPORT_RTOL`): the worst triangles lie where the
 metric has kinks, which the loops' fixed rules misjudge (see
-:data:`curvimesh.shift.REMEASURE_MARGIN`). Only nodes of interior edges move
+:data:`curvimesh.quality.REMEASURE_MARGIN`). Only nodes of interior edges move
 (a boundary edge's node stays on its side); the worst quality of the mesh
 never goes down and no edge leaves [0.7, 1.4].
 
@@ -66,6 +66,7 @@ from curvimesh.geodesic import parabola_length
 from curvimesh.mesh import Mesh, independent_flips, local_edge
 from curvimesh.metric import MetricField
 from curvimesh.quality import (
+    REMEASURE_MARGIN,
     REPORT_RTOL,
     edge_lengths,
     edge_lengths_fast,
@@ -73,11 +74,11 @@ from curvimesh.quality import (
     metric_areas_adaptive,
     quality_from,
 )
-from curvimesh.shift import IMPROVE_BELOW, REMEASURE_MARGIN
 
 #: Quality (4) below which a triangle's edges are bent: the vertex shifts' threshold
-#: (:data:`curvimesh.shift.IMPROVE_BELOW`), so that the two aim at the same figure.
-BEND_BELOW = IMPROVE_BELOW
+#: (:data:`curvimesh.shift.IMPROVE_BELOW`, a layer above this module's), so that the
+#: two aim at the same figure.
+BEND_BELOW = 0.8
 
 #: Offsets f of a node along its chord's normal, as fractions of the chord, tried on
 #: both sides. The one that mends the three toys' triangle of 0.797 is 0.02.

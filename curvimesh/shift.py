@@ -114,14 +114,6 @@ QUALITY_ANGLES = (*ANGLES, np.pi)
 #: quality is 0.80 from 10³ to 10⁵ vertices (0.67 – 0.74 without), for 0.5 s at 10⁵.
 IMPROVE_BELOW = 0.8
 
-#: Triangles of quality (4) below :data:`IMPROVE_BELOW` plus this, measured with the
-#: fixed rule of the loops, are measured again to the report's accuracy
-#: (:func:`curvimesh.quality.qualities`): where the metric
-#: has a kink, the fixed rule can be off by 0.01 in quality (the three toys at 997
-#: vertices: 0.020 at most, 0.0085 at 9,644), and the pass must see the triangles
-#: the report will find below :data:`IMPROVE_BELOW`.
-REMEASURE_MARGIN = 0.05
-
 #: Fractions of the optimal offset tried for the moved vertex's edges, in order.
 BACKTRACK = (1.0, 0.5, 0.25, 0.0)
 
@@ -224,10 +216,7 @@ def shift_vertices(
     pts = np.array(mesh.points)
     edges = mesh.edges
     length = edge_lengths(field, pts, edges, mesh.edge_mid)
-    quality = qualities(
-        field, pts[mesh.triangles], length[mesh.tri_edges],
-        remeasure_below=improve_below + REMEASURE_MARGIN,
-    )  # fmt: skip
+    quality = qualities(field, pts[mesh.triangles], length[mesh.tri_edges], aim=improve_below)
     floor = max(min_quality, float(quality.min()))
     start = np.iinfo(np.int64).max if max_searches is None else max_searches
     budget = np.array([start], dtype=np.int64)
@@ -721,7 +710,7 @@ def _best_move(
             continue
         lens = lens0.copy()
         lens[inc >= 0] = exact[inc[inc >= 0]]
-        q = qualities(field, nodes, lens, remeasure_below=state.improve_below + REMEASURE_MARGIN)
+        q = qualities(field, nodes, lens, aim=state.improve_below)
         if rule.quality_ok(q):
             return cand[i], mids, exact, q
     return None

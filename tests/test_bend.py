@@ -142,3 +142,10 @@ def test_adapt_bends_the_front_examples_worst_triangles_and_keeps_its_lengths():
     for key in ("min", "max"):
         assert 0.7 <= bent["edge_length"][key] <= 1.4
     assert bent["edge_length"]["in_range"] == flat["edge_length"]["in_range"] == 1.0
+
+
+def test_bending_aims_at_the_quality_the_vertex_shifts_aim_at():
+    from curvimesh.bend import BEND_BELOW
+    from curvimesh.shift import IMPROVE_BELOW
+
+    assert BEND_BELOW == IMPROVE_BELOW  # two constants, as bend sits a layer below shift

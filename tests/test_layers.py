@@ -44,6 +44,7 @@ LAYERS = {
     "shift": 8,
     "remove": 8,
     "intrinsic": 8,
+    "bend": 8,
     "adapt": 9,
     "batch": 10,
     "cli": 11,

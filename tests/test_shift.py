@@ -109,7 +109,7 @@ def test_the_singular_centre_of_concentric_loses_its_long_edges():
     # edges and the repeated passes, which also act on them) the edges there stay
     # up to about 2 long
     fld = load_metric(METRICS / "concentric.yaml")
-    opt = pipeline.AdaptOptions(hexagons=False, shift=False, remove=False, repeat=False)
+    opt = pipeline.AdaptOptions(hexagons=False, shift=False, remove=False, repeat=False, bend=False)
     mesh = pipeline.adapt(fld, opt).mesh
     before = lengths(fld, mesh)
     res = shift_vertices(fld, mesh)
@@ -162,7 +162,7 @@ def test_the_triangles_below_0_8_of_the_toy_mesh_are_raised():
     # 0.3 of the clean-up stages; the quality pass raises them, and the old
     # threshold (improve_below 0.3) leaves the mesh as it is
     fld = load_metric(METRICS / "toy.yaml")
-    opt = pipeline.AdaptOptions(shift=False, remove=False, repeat=False)
+    opt = pipeline.AdaptOptions(shift=False, remove=False, repeat=False, bend=False)
     mesh = pipeline.adapt(fld, opt).mesh
     q0, len0 = _quality(fld, mesh), lengths(fld, mesh)
     assert 0.3 < q0.min() < 0.8 and 0.7 <= len0.min() and len0.max() <= 1.4
@@ -250,7 +250,7 @@ def test_a_try_that_found_nothing_is_not_made_again(monkeypatch):
     # are found to fail again. The same mesh, bit for bit, as when every try is made at
     # every pass, with fewer searches
     fld = load_metric(METRICS / "quartic.yaml")
-    opt = pipeline.AdaptOptions(hexagons=False, shift=False, remove=False, repeat=False)
+    opt = pipeline.AdaptOptions(hexagons=False, shift=False, remove=False, repeat=False, bend=False)
     mesh = pipeline.adapt(fld, opt).mesh
     calls = []
     best_move = shift._best_move
@@ -276,7 +276,7 @@ def test_the_compiled_screen_measures_what_the_numpy_one_does():
     # bounds): the same verdicts, the same lengths bit for bit (one length kernel), the
     # same worst qualities
     fld = load_metric(METRICS / "toy.yaml")
-    opt = pipeline.AdaptOptions(shift=False, remove=False, repeat=False)
+    opt = pipeline.AdaptOptions(shift=False, remove=False, repeat=False, bend=False)
     mesh = pipeline.adapt(fld, opt).mesh
     p = np.array(mesh.points)
     ln = lengths(fld, mesh)
@@ -316,7 +316,7 @@ def test_a_budget_of_searches_stops_the_moves_and_keeps_those_made():
     # searches allowed nothing moves, a budget the run stays under changes nothing,
     # and a small one stops after fewer moves
     fld = load_metric(METRICS / "toy.yaml")
-    opt = pipeline.AdaptOptions(shift=False, remove=False, repeat=False)
+    opt = pipeline.AdaptOptions(shift=False, remove=False, repeat=False, bend=False)
     mesh = pipeline.adapt(fld, opt).mesh
     free = shift_vertices(fld, mesh)
     assert free.shifted >= 2 and not free.exhausted
