@@ -28,7 +28,11 @@ steps on the length (the composite Gauss rule of the bisector search, 2 × 5
 points, a smooth function of (α, β)), with the gradient and Hessian from
 central differences, a step limited to :data:`MAX_STEP` chords and halved
 until the length decreases. Rows keep the bisector optimum unless the free
-node shortens them by more than :data:`MIN_GAIN` (relative).
+node shortens them by more than :data:`MIN_GAIN` (relative). With a compiled
+metric the iterations run row by row in machine code
+(:func:`curvimesh.kernels.free_nodes`, the same operations and bits) instead of
+a dozen small calls per iteration: the three toys at 424 vertices took 1.9 s and
+take 1.5 s, the tight front at seed 1 30 s and 21 s, meshes byte-identical.
 
 Only where the frame turns fast: a field whose frame turns less than half
 :data:`FREE_NODE_TURN` everywhere on a grid of its box (:func:`may_turn_fast`)
@@ -47,8 +51,14 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from curvimesh import geodesic
-from curvimesh.geodesic import Parabolas, bisector_normal, parabola_length, parabola_length_rule
+from curvimesh import geodesic, kernels
+from curvimesh.geodesic import (
+    Parabolas,
+    bisector_normal,
+    gauss_rule,
+    parabola_length,
+    parabola_length_rule,
+)
 from curvimesh.metric import MAX_FRAME_TURN, MetricField, frame_turn, smallest_eigenvalue
 
 #: Turn of the principal directions over one unit length (radians) from which edges
@@ -106,6 +116,24 @@ def free_node(
     The length is that of the search rule (2 × 5-point Gauss); a row never ends
     longer than it starts.
     """
+    cm = field.kernel
+    if cm is not None:
+        x0, x1 = (np.ascontiguousarray(v, dtype=float) for v in (x0, x1))
+        mid, out = np.empty((len(x0), 2)), np.empty(len(x0))
+        t, w = gauss_rule(2, 5)
+        kernels.free_nodes(
+            cm.g, x0, x1, np.ascontiguousarray(alpha, dtype=float), t, w, FD_STEP, FD_STEP**2,
+            MAX_STEP, ITERATIONS, HALVINGS, TOLERANCE, mid, out,
+        )  # fmt: skip
+        return mid, out
+    return _free_node_numpy(field, x0, x1, alpha)
+
+
+def _free_node_numpy(
+    field: MetricField, x0: NDArray, x1: NDArray, alpha: NDArray
+) -> tuple[NDArray, NDArray]:
+    """:func:`free_node` by vectorised numpy over the rows (the metrics with no compiled
+    form; the reference of :func:`curvimesh.kernels.free_nodes`)."""
     nrm = bisector_normal(x0, x1)
     d = x1 - x0
     mid0 = 0.5 * (x0 + x1)

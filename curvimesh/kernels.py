@@ -884,6 +884,80 @@ def shortest_parabolas_near(fn, x0, x1, start, grid, t, w, tol, max_iter, alpha,
         )
 
 
+@njit(**_JIT)
+def _free_length(fn, ax, ay, bx, by, mx, my, nx, ny, dx, dy, a, b, t, w):
+    """Length by the rule (t, w) of the parabola from a to b through the node
+    (mx, my) + α (nx, ny) + β (dx, dy) (:func:`curvimesh.freenode.free_node`'s)."""
+    return _parabola_length(fn, ax, ay, bx, by, mx + a * nx + b * dx, my + a * ny + b * dy, t, w)
+
+
+@njit(**_JIT)
+def _newton_step(ga, gb, haa, hab, hbb, max_step):
+    """:func:`curvimesh.freenode.newton_step` of one row (the same operations)."""
+    det = haa * hbb - hab**2
+    if haa > 0.0 and det > 0.0:
+        sa = -(hbb * ga - hab * gb) / det
+        sb = -(haa * gb - hab * ga) / det
+    else:
+        scale = _nan_max(abs(haa) + abs(hbb) + 2.0 * abs(hab), 1e-300)
+        sa = -ga / scale
+        sb = -gb / scale
+    norm = math.hypot(sa, sb)
+    cap = max_step / norm if norm > max_step else 1.0
+    sa, sb = sa * cap, sb * cap
+    if not (math.isfinite(sa) and math.isfinite(sb)):
+        return 0.0, 0.0
+    return sa, sb
+
+
+@_row_kernel(min_rows=SEARCH_PARALLEL_ROWS)
+def free_nodes(
+    fn, x0, x1, alpha, t, w, h, h2, max_step, iterations, halvings, tol, mid, length
+):  # fmt: skip
+    """:func:`curvimesh.freenode.free_node` one row at a time, in the same operations:
+    damped Newton on (α, β) from (``alpha[i]``, 0), the gradient and Hessian by central
+    differences of step ``h`` (``h2`` = h²), steps capped at ``max_step`` and halved
+    at most ``halvings`` times until the length decreases, at most ``iterations``,
+    stopping when a step shortens by no more than ``tol`` (relative); the node into
+    ``mid`` ``(n, 2)``, the length by the rule (t, w) into ``length``."""
+    for i in prange(x0.shape[0]):
+        ax, ay, bx, by = x0[i, 0], x0[i, 1], x1[i, 0], x1[i, 1]
+        dx, dy = bx - ax, by - ay
+        nx, ny = dy, -dx
+        mx, my = 0.5 * (ax + bx), 0.5 * (ay + by)
+        a, b = alpha[i], 0.0
+        f = _free_length(fn, ax, ay, bx, by, mx, my, nx, ny, dx, dy, a, b, t, w)
+        if math.isfinite(f):
+            for _ in range(iterations):
+                A, B, F = a, b, f
+                fpa = _free_length(fn, ax, ay, bx, by, mx, my, nx, ny, dx, dy, A + h, B, t, w)
+                fma = _free_length(fn, ax, ay, bx, by, mx, my, nx, ny, dx, dy, A - h, B, t, w)
+                fpb = _free_length(fn, ax, ay, bx, by, mx, my, nx, ny, dx, dy, A, B + h, t, w)
+                fmb = _free_length(fn, ax, ay, bx, by, mx, my, nx, ny, dx, dy, A, B - h, t, w)
+                fab = _free_length(fn, ax, ay, bx, by, mx, my, nx, ny, dx, dy, A + h, B + h, t, w)
+                ga, gb = (fpa - fma) / (2.0 * h), (fpb - fmb) / (2.0 * h)
+                haa, hbb = (fpa - 2.0 * F + fma) / h2, (fpb - 2.0 * F + fmb) / h2
+                hab = (fab - fpa - fpb + F) / h2
+                sa, sb = _newton_step(ga, gb, haa, hab, hbb, max_step)
+                step = 1.0
+                moved = False
+                for _ in range(halvings):
+                    fs = _free_length(
+                        fn, ax, ay, bx, by, mx, my, nx, ny, dx, dy, A + step * sa, B + step * sb,
+                        t, w,
+                    )  # fmt: skip
+                    if math.isfinite(fs) and fs < F:
+                        a, b, f = A + step * sa, B + step * sb, fs
+                        moved = True
+                        break
+                    step *= 0.5
+                if not (moved and F - f > tol * F):
+                    break
+        mid[i, 0] = mx + a * nx + b * dx
+        mid[i, 1] = my + a * ny + b * dy
+        length[i] = f
+
+
 @_row_kernel(min_rows=SEARCH_PARALLEL_ROWS)
 def classify_parabolas(fn, x0, x1, grid, t, w, tol, max_iter, short, long, verdict):
     """Whether the shortest parabola of each row is below ``short`` (−1), above

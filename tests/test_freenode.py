@@ -84,3 +84,20 @@ def test_only_the_fast_turns_of_the_tight_front_are_fast():
     far = np.array([[0.1, 0.5], [0.9, 0.1]])  # isotropic there
     assert freenode.turns_fast(fld, tip).all()
     assert not freenode.turns_fast(fld, np.concatenate([flank, far])).any()
+
+
+def test_the_compiled_free_node_is_the_numpy_one_bit_for_bit():
+    """kernels.free_nodes runs free_node's damped Newton one row at a time in the same
+    operations: on edges about the tight front's tips (where it matters) and across it,
+    the same nodes and lengths, bit for bit."""
+    fld = load_metric(METRICS / "hard" / "tight_front.yaml")
+    assert fld.kernel is not None
+    rng = np.random.default_rng(11)
+    a = front_points(rng.uniform(0.0, 0.15, 200)) + rng.normal(scale=0.002, size=(200, 2))
+    b = a + rng.normal(scale=0.04, size=a.shape)
+    alpha = geodesic.shortest_parabola(fld, a, b, exact_length=False).alpha
+    mid, length = freenode.free_node(fld, a, b, alpha)
+    ref_mid, ref_length = freenode._free_node_numpy(fld, a, b, alpha)
+    assert np.array_equal(mid, ref_mid) and np.array_equal(length, ref_length)
+    moved = np.hypot(*(mid - geodesic.parabola_midnode(a, b, alpha)).T)
+    assert (moved > 0.1 * np.hypot(*(b - a).T)).sum() > 20  # nodes freed far off the bisector
