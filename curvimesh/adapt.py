@@ -267,7 +267,8 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
         mesh, passes, found = repeat_passes(fld, mesh, opt, tally)
     bent = 0
     if opt.bend:
-        br = bend_nodes(fld, mesh, min_dist=opt.sampling.min_dist)
+        known = None if found is None else (found.lengths, found.qualities)
+        br = bend_nodes(fld, mesh, min_dist=opt.sampling.min_dist, measured=known)
         mesh, bent = br.mesh, br.bent
     fitted = 0
     function = fld.error_function
@@ -316,6 +317,9 @@ class Defects:
     min_length: float
     max_length: float
     min_quality: float
+    # the measures behind the figures: edge lengths and qualities by the loops' fixed rules
+    lengths: np.ndarray | None = field(default=None, repr=False, compare=False)
+    qualities: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def count(self) -> int:
@@ -367,6 +371,8 @@ def defects(
         float(length.min()),
         float(length.max()),
         float(q.min()),
+        length,
+        q,
     )
 
 

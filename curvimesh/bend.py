@@ -102,6 +102,7 @@ def bend_nodes(
     min_dist: float = 0.7,
     max_length: float = 1.4,
     max_rounds: int = 10,
+    measured: tuple[NDArray, NDArray] | None = None,
 ) -> BendResult:
     """Bend the nodes of the interior edges of the triangles of quality below
     ``improve_below`` where that raises the worse quality of their two triangles
@@ -109,13 +110,16 @@ def bend_nodes(
 
     ``mesh`` is a valid P2 mesh; the result has the same triangles and node
     numbering, and only nodes of interior edges move. Deterministic.
+    ``measured``: the mesh's edge lengths and qualities by the loops' fixed rules
+    (:func:`~curvimesh.quality.edge_lengths_fast`, :func:`~curvimesh.quality.metric_areas`),
+    where the caller has them (:func:`curvimesh.adapt.defects`); measured here otherwise.
     """
     if mesh.order != 2 or len(mesh.triangles) == 0:
         return BendResult(mesh, 0, 0)
     pts = np.array(mesh.points)
     tris = np.asarray(mesh.triangles)
     emid, et, tri_edges = mesh.edge_mid, mesh.edge_tris, mesh.tri_edges
-    ruler = _Ruler(field, mesh, pts)
+    ruler = _Ruler(field, mesh, pts, measured)
     ruler.measure(np.flatnonzero(ruler.q < improve_below + REMEASURE_MARGIN))
     length, q = ruler.length, ruler.q
     changed = np.zeros(len(tris), dtype=np.int64)  # round of each triangle's last change
@@ -162,11 +166,17 @@ class _Ruler:
     :meth:`measure` is asked for and their edges (a few: the poor triangles and their
     neighbours), so that the whole mesh is not measured to the report's accuracy."""
 
-    def __init__(self, field: MetricField, mesh: Mesh, pts: NDArray) -> None:
+    def __init__(
+        self, field: MetricField, mesh: Mesh, pts: NDArray, measured: tuple | None = None
+    ) -> None:
         self.field, self.mesh, self.pts = field, mesh, pts
+        if measured is not None:
+            self.length, self.q = (np.array(v, dtype=float) for v in measured)
+        else:
+            e, tris = mesh.edges, mesh.triangles
+            self.length = edge_lengths_fast(field, pts[e[:, 0]], pts[e[:, 1]], pts[mesh.edge_mid])
+            self.q = quality_from(metric_areas(field, pts[tris]), self.length[mesh.tri_edges])
         e = mesh.edges
-        self.length = edge_lengths_fast(field, pts[e[:, 0]], pts[e[:, 1]], pts[mesh.edge_mid])
-        self.q = quality_from(metric_areas(field, pts[mesh.triangles]), self.length[mesh.tri_edges])
         self.exact_edge = np.zeros(len(e), dtype=bool)
         self.exact_tri = np.zeros(len(mesh.triangles), dtype=bool)
 

@@ -149,3 +149,19 @@ def test_bending_aims_at_the_quality_the_vertex_shifts_aim_at():
     from curvimesh.shift import IMPROVE_BELOW
 
     assert BEND_BELOW == IMPROVE_BELOW  # two constants, as bend sits a layer below shift
+
+
+def test_the_measures_a_caller_hands_over_give_the_same_bending():
+    """adapt hands over the fixed-rule lengths and qualities its repeated passes measured
+    (adapt.defects): the bending is the one that measures them itself, bit for bit."""
+    from pathlib import Path
+
+    from curvimesh.metric import load_metric
+
+    fld = load_metric(Path(__file__).resolve().parents[1] / "metrics" / "front.yaml")
+    mesh = pipeline.adapt(fld, pipeline.AdaptOptions(bend=False)).mesh
+    found = pipeline.defects(fld, mesh)
+    handed = bend_nodes(fld, mesh, measured=(found.lengths, found.qualities))
+    own = bend_nodes(fld, mesh)
+    assert handed.bent == own.bent > 0
+    assert np.array_equal(handed.mesh.points, own.mesh.points)
