@@ -26,7 +26,7 @@ from curvimesh.insert import insert_points
 from curvimesh.intrinsic import intrinsic_flips
 from curvimesh.mesh import Mesh
 from curvimesh.metric import UNIT_TRIANGLE_AREA, MetricField, density_integral
-from curvimesh.quality import edge_lengths_fast, metric_areas, quality_from
+from curvimesh.quality import fixed_rule_measures
 from curvimesh.recurve import recurve
 from curvimesh.remove import remove_vertices
 from curvimesh.sampling import SamplingOptions, sample_points
@@ -360,11 +360,7 @@ def defects(
 ) -> Defects:
     """The :class:`Defects` of a P2 ``mesh``: its edges longer than ``max_length`` in the
     metric (lengths of the curved edges) and its triangles below ``min_quality``."""
-    pts = np.asarray(mesh.points)
-    e = mesh.edges
-    length = edge_lengths_fast(fld, pts[e[:, 0]], pts[e[:, 1]], pts[mesh.edge_mid])
-    area = metric_areas(fld, pts[np.asarray(mesh.triangles)])
-    q = quality_from(area, length[mesh.tri_edges])
+    length, q = fixed_rule_measures(fld, mesh)
     return Defects(
         int((length > max_length).sum()),
         int((q < min_quality).sum()),

@@ -69,8 +69,7 @@ from curvimesh.quality import (
     REMEASURE_MARGIN,
     REPORT_RTOL,
     edge_lengths,
-    edge_lengths_fast,
-    metric_areas,
+    fixed_rule_measures,
     metric_areas_adaptive,
     quality_from,
 )
@@ -111,8 +110,8 @@ def bend_nodes(
     ``mesh`` is a valid P2 mesh; the result has the same triangles and node
     numbering, and only nodes of interior edges move. Deterministic.
     ``measured``: the mesh's edge lengths and qualities by the loops' fixed rules
-    (:func:`~curvimesh.quality.edge_lengths_fast`, :func:`~curvimesh.quality.metric_areas`),
-    where the caller has them (:func:`curvimesh.adapt.defects`); measured here otherwise.
+    (:func:`~curvimesh.quality.fixed_rule_measures`), where the caller has them
+    (:func:`curvimesh.adapt.defects`); measured here otherwise.
     """
     if mesh.order != 2 or len(mesh.triangles) == 0:
         return BendResult(mesh, 0, 0)
@@ -160,8 +159,8 @@ def bend_nodes(
 
 class _Ruler:
     """Edge lengths and triangle qualities (4) of a mesh whose nodes ``pts`` move: by the
-    loops' fixed rules (:func:`~curvimesh.quality.edge_lengths_fast`,
-    :func:`~curvimesh.quality.metric_areas`, remembered from the stages before) for
+    loops' fixed rules (:func:`~curvimesh.quality.fixed_rule_measures`, remembered from
+    the stages before) for
     the whole mesh, and to :data:`~curvimesh.quality.REPORT_RTOL` for the triangles
     :meth:`measure` is asked for and their edges (a few: the poor triangles and their
     neighbours), so that the whole mesh is not measured to the report's accuracy."""
@@ -170,14 +169,9 @@ class _Ruler:
         self, field: MetricField, mesh: Mesh, pts: NDArray, measured: tuple | None = None
     ) -> None:
         self.field, self.mesh, self.pts = field, mesh, pts
-        if measured is not None:
-            self.length, self.q = (np.array(v, dtype=float) for v in measured)
-        else:
-            e, tris = mesh.edges, mesh.triangles
-            self.length = edge_lengths_fast(field, pts[e[:, 0]], pts[e[:, 1]], pts[mesh.edge_mid])
-            self.q = quality_from(metric_areas(field, pts[tris]), self.length[mesh.tri_edges])
-        e = mesh.edges
-        self.exact_edge = np.zeros(len(e), dtype=bool)
+        known = fixed_rule_measures(field, mesh) if measured is None else measured
+        self.length, self.q = (np.array(v, dtype=float) for v in known)
+        self.exact_edge = np.zeros(len(mesh.edges), dtype=bool)
         self.exact_tri = np.zeros(len(mesh.triangles), dtype=bool)
 
     def measure(self, tris: NDArray) -> None:

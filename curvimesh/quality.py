@@ -22,6 +22,7 @@ from curvimesh import kernels
 from curvimesh.bezier import p2_jacobian, p2_map, p2_shape, p2_shape_grad
 from curvimesh.geodesic import parabola_length, parabola_length_rule
 from curvimesh.memo import memo_table, memoised
+from curvimesh.mesh import Mesh
 from curvimesh.metric import MetricField
 
 #: Relative accuracy of the figures a user reads: the report's edge lengths and metric
@@ -229,6 +230,17 @@ def _metric_areas(field: MetricField, rows: NDArray, order: int) -> NDArray:
 #: toys at 997 vertices: 0.020 at most, 0.0085 at 9,644), and the loop must see the
 #: triangles the report will find below its aim.
 REMEASURE_MARGIN = 0.05
+
+
+def fixed_rule_measures(field: MetricField, mesh: Mesh) -> tuple[NDArray, NDArray]:
+    """Edge lengths ``(E,)`` and qualities (4) ``(m,)`` of a P2 ``mesh`` by the loops' fixed
+    rules (:func:`edge_lengths_fast`, :func:`metric_areas`): what the clean-up stages
+    judge a whole mesh by (:func:`curvimesh.adapt.defects`, :mod:`curvimesh.bend`)."""
+    pts = np.asarray(mesh.points)
+    e = mesh.edges
+    length = edge_lengths_fast(field, pts[e[:, 0]], pts[e[:, 1]], pts[mesh.edge_mid])
+    area = metric_areas(field, pts[np.asarray(mesh.triangles)])
+    return length, quality_from(area, length[mesh.tri_edges])
 
 
 def qualities(field: MetricField, nodes: NDArray, lens: NDArray, *, aim: float) -> NDArray:
