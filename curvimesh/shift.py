@@ -85,6 +85,7 @@ from curvimesh.geodesic import gauss_rule, offset_alpha, parabola_midnode
 from curvimesh.mesh import Mesh, cells_at_vertices
 from curvimesh.metric import MetricField
 from curvimesh.quality import (
+    COUNT_RTOL,
     area_rule,
     edge_lengths,
     edge_lengths_fast,
@@ -254,6 +255,7 @@ def shift_vertices(
                 tries.moved(star.tris)
                 moved += 1
                 break
+        moved += _short_pass(field, state, tries, (min_dist, max_length), improve_below)
         moved += _quality_pass(field, state, tries, (min_dist, max_length), improve_below)
         shifted += moved
         now = float(quality.min())
@@ -367,6 +369,52 @@ def _quality_pass(
             else:
                 tries.failed(key)
                 continue
+            moved += 1
+            break
+    return moved
+
+
+def _short_pass(
+    field: MetricField,
+    state: _State,
+    tries: _Tries,
+    bounds: tuple[float, float],
+    improve_below: float,
+) -> int:
+    """One pass over the edges shorter than ``min_dist`` (beyond the report's accuracy),
+    shortest first: an end v is moved away from the other (along v − w turned by
+    :data:`ANGLES`) to the position of the best worst quality of its star with every
+    edge of the star, this one too, at least min(``min_dist``, the shortest of the
+    others) and at most max(``max_length``, its longest), the worst quality at least
+    min(its own, ``improve_below``). Returns the number of vertices moved."""
+    min_dist, max_length = bounds
+    mesh, pts, length, quality = state.mesh, state.pts, state.length, state.quality
+    limit = min_dist * (1.0 - COUNT_RTOL)
+    moved = 0
+    for e in _ascending(length, length < limit):
+        if length[e] >= limit or state.exhausted:
+            break
+        for v, w in (mesh.edges[e], mesh.edges[e][::-1]):
+            if state.fixed[v]:
+                continue
+            star = state.star(int(v))
+            key = ("short", int(e), int(v))
+            if tries.known_to_fail(key, star.tris):
+                continue
+            old = length[star.edges]
+            others = old[star.edges != e]
+            rule = _Rule(
+                shortest=min(min_dist, float(others.min())) if others.size else min_dist,
+                longest=max(max_length, float(old.max())),
+                q_min=min(float(quality[star.tris].min()), improve_below) - 1e-12,
+                by_quality=True,
+            )
+            if not state.move(
+                field, star, int(v), _candidates(field, pts[v], pts[v] - pts[w]), rule
+            ):
+                tries.failed(key)
+                continue
+            tries.moved(star.tris)
             moved += 1
             break
     return moved

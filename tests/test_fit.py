@@ -242,3 +242,31 @@ def test_outliers_are_unbent_together():
     np.testing.assert_allclose(pts[mesh.edge_mid], straight_nodes, atol=1e-15)
     assert np.sqrt(local.sum()) < 1e-12 * before
     assert interpolation_error(f, Mesh(pts, mesh.triangles, mesh.box)).l2 < 1e-14
+
+
+def test_the_retry_judges_the_unit_mesh_not_the_lengths_the_fit_traded(monkeypatch):
+    """adapt makes a second run (without the lattice) when an edge longer than 1.5 is
+    left; for an interpolation metric the fit then trades unit lengths for the error of
+    f, by design, and the edges are judged before it. A stand-in fit bulges one interior
+    edge to more than 1.5: the run is not made again, and the final mesh keeps the
+    bulge."""
+    from curvimesh.fit import FitResult
+
+    fld = load_metric_text(FRONT_YAML)
+    before: list[Mesh] = []
+
+    def stretching_fit(f, mesh):
+        before.append(mesh)
+        pts = np.array(mesh.points)
+        k = int(np.flatnonzero(mesh.edge_tris[:, 1] >= 0)[0])
+        a, b = pts[mesh.edges[k]]
+        pts[mesh.edge_mid[k]] = 0.5 * (a + b) + 0.7 * np.array([b[1] - a[1], a[0] - b[0]])
+        return FitResult(Mesh(pts, mesh.triangles, mesh.box), 1, 1, 1.0, 1.0)
+
+    monkeypatch.setattr(pipeline, "fit_nodes", stretching_fit)
+    said: list[str] = []
+    res = pipeline.adapt(fld, progress=said.append)
+    assert len(before) == 1 and not any("again" in s for s in said)
+    assert pipeline.defects(fld, res.mesh).max_length > 1.5
+    unit = pipeline.defects(fld, before[0])
+    assert unit.max_length <= 1.4 * (1 + 1e-4)

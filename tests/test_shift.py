@@ -329,3 +329,25 @@ def test_a_budget_of_searches_stops_the_moves_and_keeps_those_made():
     few = shift_vertices(fld, mesh, max_searches=1)
     assert few.exhausted and few.shifted <= 1
     assert valid_exact(np.asarray(few.mesh.points)[few.mesh.triangles]).all()
+
+
+def test_an_end_of_a_short_edge_is_moved_until_the_edge_is_unit(monkeypatch):
+    """The middle vertex of the unit lattice moved 0.32 to the right: its edge to the right
+    0.68 long, its star's triangles still of quality at least 0.9 (so neither the long
+    edges' moves nor the quality pass act). The short edges' pass moves it back: every
+    edge in [0.7, 1.4] (g = I: lengths exact), the mesh valid; without the pass the
+    edge stays 0.68."""
+    fld = load_metric_text(EUCLID)
+    mesh, v = lattice()
+    bad = displaced(mesh, v, np.array([0.32, 0.0]))
+    before = lengths(fld, bad)
+    assert abs(before.min() - 0.68) < 1e-9 and before.max() <= 1.4
+    assert _quality(fld, bad).min() > 0.9
+    res = shift_vertices(fld, bad)
+    after = lengths(fld, res.mesh)
+    assert res.shifted >= 1
+    assert 0.7 <= after.min() and after.max() <= 1.4
+    assert valid_exact(np.asarray(res.mesh.points)[res.mesh.triangles]).all()
+    assert np.asarray(res.mesh.points)[v, 0] < np.asarray(bad.points)[v, 0]  # back to the left
+    monkeypatch.setattr(shift, "_short_pass", lambda *args: 0)
+    assert lengths(fld, shift_vertices(fld, bad).mesh).min() == before.min()
