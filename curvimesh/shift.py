@@ -71,7 +71,7 @@ swaps (``--no-shift`` turns it off).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -228,33 +228,23 @@ def shift_vertices(
     tries = _Tries(len(mesh.triangles))
     shifted = passes = 0
     worst = float(quality.min())
+
+    def long_rule(star: _Star, e: int) -> _Rule:
+        old = length[star.edges]
+        return _Rule(
+            shortest=min(min_dist, float(old.min())),
+            longest=float(old.max()),
+            q_min=min(float(quality[star.tris].min()), floor),
+            by_quality=False,
+        )
+
     while passes < max_passes:
         passes += 1
-        moved = 0
-        for e in _ascending(-length, length > max_length):
-            if length[e] <= max_length or state.exhausted:
-                break
-            for v, w in (edges[e], edges[e][::-1]):
-                if state.fixed[v]:
-                    continue
-                star = state.star(int(v))
-                key = ("edge", int(e), int(v))
-                if tries.known_to_fail(key, star.tris):
-                    continue
-                old = length[star.edges]
-                rule = _Rule(
-                    shortest=min(min_dist, float(old.min())),
-                    longest=float(old.max()),
-                    q_min=min(float(quality[star.tris].min()), floor),
-                    by_quality=False,
-                )
-                cand = _candidates(field, pts[v], pts[w] - pts[v])
-                if not state.move(field, star, int(v), cand, rule):
-                    tries.failed(key)
-                    continue
-                tries.moved(star.tris)
-                moved += 1
-                break
+        longest_first = _ascending(-length, length > max_length)
+        moved = _end_moves(
+            field, state, tries, longest_first, lambda e: length[e] > max_length, "edge",
+            long_rule, towards=True,
+        )  # fmt: skip
         moved += _short_pass(field, state, tries, (min_dist, max_length), improve_below)
         moved += _quality_pass(field, state, tries, (min_dist, max_length), improve_below)
         shifted += moved
@@ -388,29 +378,58 @@ def _short_pass(
     others) and at most max(``max_length``, its longest), the worst quality at least
     min(its own, ``improve_below``). Returns the number of vertices moved."""
     min_dist, max_length = bounds
-    mesh, pts, length, quality = state.mesh, state.pts, state.length, state.quality
+    length, quality = state.length, state.quality
     limit = min_dist * (1.0 - COUNT_RTOL)
+
+    def rule(star: _Star, e: int) -> _Rule:
+        old = length[star.edges]
+        others = old[star.edges != e]
+        return _Rule(
+            shortest=min(min_dist, float(others.min())) if others.size else min_dist,
+            longest=max(max_length, float(old.max())),
+            q_min=min(float(quality[star.tris].min()), improve_below) - 1e-12,
+            by_quality=True,
+        )
+
+    shortest_first = _ascending(length, length < limit)
+    return _end_moves(
+        field, state, tries, shortest_first, lambda e: length[e] < limit, "short", rule,
+        towards=False,
+    )  # fmt: skip
+
+
+def _end_moves(
+    field: MetricField,
+    state: _State,
+    tries: _Tries,
+    order: Iterator[int],
+    still: Callable[[int], bool],
+    kind: str,
+    rule: Callable[[_Star, int], _Rule],
+    *,
+    towards: bool,
+) -> int:
+    """Moves of an end v of each edge e of ``order`` while ``still(e)``: v along the
+    chord to its other end w (``towards``) or away from it, turned by :data:`ANGLES`,
+    to the best admissible position by ``rule(v's star, e)`` (:func:`_best_move`); the
+    other end is tried when v is fixed or finds nothing. A try that found nothing is
+    not made again before its star changes (:class:`_Tries`, by ``kind``, e, v).
+    Returns the number of vertices moved."""
+    mesh, pts = state.mesh, state.pts
     moved = 0
-    for e in _ascending(length, length < limit):
-        if length[e] >= limit or state.exhausted:
+    for e in order:
+        if not still(e) or state.exhausted:
             break
         for v, w in (mesh.edges[e], mesh.edges[e][::-1]):
             if state.fixed[v]:
                 continue
             star = state.star(int(v))
-            key = ("short", int(e), int(v))
+            key = (kind, int(e), int(v))
             if tries.known_to_fail(key, star.tris):
                 continue
-            old = length[star.edges]
-            others = old[star.edges != e]
-            rule = _Rule(
-                shortest=min(min_dist, float(others.min())) if others.size else min_dist,
-                longest=max(max_length, float(old.max())),
-                q_min=min(float(quality[star.tris].min()), improve_below) - 1e-12,
-                by_quality=True,
-            )
+            chord = pts[w] - pts[v] if towards else pts[v] - pts[w]
             if not state.move(
-                field, star, int(v), _candidates(field, pts[v], pts[v] - pts[w]), rule
+                field, star, int(v), _candidates(field, pts[v], chord), rule(star, e)
             ):
                 tries.failed(key)
                 continue
