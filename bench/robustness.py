@@ -1,9 +1,9 @@
 """The unit-mesh targets on metrics the method was not tuned on, at several seeds.
 
 Runs ``curvimesh batch`` (the command line, as a user would) over the metric
-files of ``bench/robustness/`` (37 fields of the kinds of issue 7: constant
-anisotropic fields at other angles, wall layers of 500:1 to 1000:1, tilted and
-circular layers, concentric circles with a singular centre, curved fronts,
+files of ``bench/robustness/`` (46 fields of the kinds of issue 7: constant
+anisotropic fields at other angles, wall layers of 500:1 to 10,000:1, tilted and
+circular layers (up to 5,000:1), concentric circles with a singular centre, curved fronts,
 variable isotropic sizes, intersections, a swirl, a shock, a point grading and a
 function's interpolation metric; written to test the method, not tuned on) once
 per seed, with ``--no-fit`` (the unit mesh: the fit of an interpolation metric

@@ -272,18 +272,20 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
         known = None if found is None else (found.lengths, found.qualities)
         br = bend_nodes(fld, mesh, min_dist=opt.sampling.min_dist, measured=known)
         mesh, bent = br.mesh, br.bent
+    if bent:
+        found = None  # measured before the nodes moved
+    unit = found  # the unit mesh's, which the fit (a trade, by design) leaves behind
     fitted = 0
-    unit = None if bent else found
     function = fld.error_function
     if opt.fit and function is not None:
         unit = defects(fld, mesh) if unit is None else unit
         fr = fit_nodes(function, mesh)
         mesh, fitted = fr.mesh, fr.moves
-    if fitted or bent:
+    if fitted:
         found = None
     return SwapStage(
         mesh, fitted=fitted, bent=bent, flips=flips, passes=passes, defects=found,
-        unit_defects=unit if fitted else found, **vars(tally),
+        unit_defects=unit, **vars(tally),
     )  # fmt: skip
 
 
