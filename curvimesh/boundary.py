@@ -267,7 +267,76 @@ def _wedge(
             if shortest >= min_dist:
                 return w
             angle *= 0.98 * shortest / (min_dist * (1.0 + margin))
-    return None
+    return _field_wedge(field, tables, k, target, min_dist, max_length)
+
+
+#: Spacing (metric length along a side) of the candidate vertices of :func:`_field_wedge`.
+FIELD_WEDGE_STEP = 0.02
+
+
+def _field_wedge(
+    field: MetricField,
+    tables,
+    k: int,
+    target: float,
+    min_dist: float,
+    max_length: float,
+    *,
+    margin: float = 0.005,
+    tries: int = 16,
+) -> tuple[NDArray, NDArray] | None:
+    """The staggering of :func:`wedge_distances` with its cross edges measured in the field.
+
+    The corner's metric can misjudge every design: where the field turns or
+    shrinks over the few units the staggering spans, narrowing the design's
+    angle leaves its first cross edge about ℓ_min long in the corner's metric
+    and short in the field (0.61 at a corner of 22°, seen in a hypothesis
+    run). The same greedy rule is run here with c(s, t) the shortest-parabola
+    length in the field between the vertex at metric distance s from the
+    corner on one side and the one at t on the other: t_{k+1} is the larger of
+    t_{k−1} + target and the smallest candidate beyond which every candidate
+    of the other side is at least ℓ_min from t_k. Candidates are
+    :data:`FIELD_WEDGE_STEP` apart; the staggering ends once both last
+    vertices are ℓ_min from every candidate of the other side up to the
+    reach of the next edge. The first distance is chosen among ``tries``
+    values as in :func:`wedge_distances`. None when no staggering fits in
+    half of the shorter side or within ``max_length``.
+    """
+    lo = min_dist * (1.0 + margin)
+    hi = max_length / (1.0 + margin)
+    sides = (k, (k - 1) % 4)  # odd entries of the sequence on the first, even on the second
+    reach = 0.5 * min(tables[sides[0]][1][-1], tables[sides[1]][1][-1])
+
+    def point(side: int, dist: NDArray) -> NDArray:
+        return _at_distance(field, tables, sides[side], dist, backwards=side == 1)
+
+    def crosses(side: int, s: float, grid: NDArray) -> NDArray:
+        """Lengths from the vertex at s on ``side`` to the candidates on the other side."""
+        a = np.repeat(point(side, np.array([s])), len(grid), axis=0)
+        return shortest_parabola(field, a, point(1 - side, grid), remember=False).length
+
+    best, best_edge = None, math.inf
+    for t1 in np.linspace(max(target, lo), lo, tries):
+        seq, far, edge = [0.0, float(t1)], [False], float(t1)
+        while edge <= hi:
+            side = (len(seq) - 2) % 2  # of the last vertex: 0 = first side
+            grid = np.arange(0.0, seq[-2] + hi + FIELD_WEDGE_STEP, FIELD_WEDGE_STEP)
+            if grid[-1] > reach:
+                edge = math.inf
+                break
+            c = crosses(side, seq[-1], grid)
+            far.append(bool(c.min() >= lo))
+            if far[-1] and far[-2]:
+                break
+            after = np.flatnonzero((c < lo) | (grid <= seq[-2]))[-1] + 1  # grid[0] = 0 is in
+            t = max(seq[-2] + target, float(grid[after]) if after < len(grid) else math.inf)
+            edge = max(edge, t - seq[-2])
+            seq.append(t)
+        if edge <= hi and edge < best_edge:
+            best, best_edge = seq, edge
+    if best is None:
+        return None
+    return np.array(best[1::2]), np.array(best[2::2])
 
 
 #: Lengthenings tried at a corner whose cross edge the field makes short.

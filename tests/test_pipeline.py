@@ -227,6 +227,13 @@ metric:
     wave=0.4538249106756846,
     freq=0.8894459120056435,
 )
+@example(  # a corner of 22°: no design in the corner's metric passes, _field_wedge does
+    h1=0.375,
+    ratio=5.844263719178884,
+    angle=1.4322379502161722,
+    wave=0.5,
+    freq=2.897493633588364,
+)
 def test_any_smooth_metric_gives_a_valid_conforming_mesh(h1, ratio, angle, wave, freq):
     text = f"""
 domain: {{box: [[0, 0], [2, 1.5]]}}
@@ -243,6 +250,55 @@ metric:
     # no short edge anywhere, box corners acute in the metric included
     # (boundary.wedge_distances staggers the vertices there)
     assert lengths.min() >= 0.7 - 1e-3, (lengths.min(), np.degrees(corner_angles(fld)))
+
+
+def test_a_corner_the_corner_metric_misjudges_is_staggered_in_the_field():
+    """Corner (2, 0) of a hypothesis metric, 22° in its metric: every design of
+    wedge_distances leaves a cross edge under 0.7 in the field (the first one
+    stays about 0.6 as the design's angle narrows), so the staggering is made
+    with the field's lengths; each cross edge is then measured by quadrature of
+    the metric along its shortest parabola, each side edge by the side's table."""
+    from curvimesh.boundary import (
+        WEDGE_MARGINS,
+        _at_distance,
+        _side_tables,
+        _wedge,
+        corner_angles,
+    )
+    from curvimesh.geodesic import shortest_parabola
+
+    fld = load_metric_text(
+        "domain: {box: [[0, 0], [2, 1.5]]}\n"
+        "metric: {eigen: {sizes: ['0.0641654 * (1 + 0.5 * sin(2.89749 * x))', 0.375],\n"
+        "                 angle: '1.43224 + 0.5 * cos(2.89749 * y)'}}\n"
+    )
+    tables = _side_tables(fld)
+    theta = float(corner_angles(fld)[1])
+    assert math.degrees(theta) == pytest.approx(21.94, abs=0.01)
+
+    def cross(w):
+        first = _at_distance(fld, tables, 1, w[0], backwards=False)
+        second = _at_distance(fld, tables, 0, w[1], backwards=True)
+        merged = np.empty((len(first) + len(second), 2))
+        merged[0::2], merged[1::2] = first, second
+        return merged, shortest_parabola(fld, merged[:-1], merged[1:])
+
+    for margin in WEDGE_MARGINS:  # the corner's own metric: a short first cross edge
+        w = wedge_distances(theta, margin=margin)
+        assert w is None or cross(w)[1].length[0] < 0.7
+    a, b = _wedge(fld, tables, 1, theta, 1.0, 0.7, 1.5)
+    assert np.all(np.diff(np.concatenate([[0.0], a])) <= 1.5)
+    assert np.all(np.diff(np.concatenate([[0.0], b])) <= 1.5)
+    merged, par = cross((a, b))
+    for p, q, m, length in zip(merged[:-1], merged[1:], par.mid, par.length, strict=True):
+
+        def speed(t, p=p, q=q, m=m):  # the P2 curve through p, m, q (SPEC section 3)
+            x = (1 - t) * (1 - 2 * t) * p + t * (2 * t - 1) * q + 4 * t * (1 - t) * m
+            v = (4 * t - 3) * p + (4 * t - 1) * q + (4 - 8 * t) * m
+            return math.sqrt(v @ fld.tensor(x[None, :])[0] @ v)
+
+        exact = quad(speed, 0.0, 1.0, epsabs=1e-10, limit=200)[0]
+        assert exact == pytest.approx(length, rel=1e-4) and exact >= 0.7
 
 
 @given(theta=st.floats(math.radians(0.5), math.radians(80)))
