@@ -314,3 +314,32 @@ def test_closeness_in_a_thin_curved_layer_agrees_with_the_full_search():
     far = 0.5 + 0.3 * np.column_stack([np.cos(angles + 0.5), np.sin(angles + 0.5)])
     assert (shortest_parabola(fld, a, far).length > 0.7).all()
     assert not sampling.too_close(fld, a, far, 0.7).any()
+
+
+def test_closeness_in_a_valley_narrower_than_the_tolerance_agrees_with_a_dense_scan():
+    """Two points within 5e-5 of the circle of the same layer (inside, outside, or
+    one of each), 0.045 - 0.065 apart along it: the parabola's length dips under
+    0.7 in a valley about 0.001 wide in α (1.17, 0.60, 1.18 at α = 0.0180, 0.0185,
+    0.0190 for a pair of seed 1's cloud), narrower than the search's tolerance of
+    0.002. Stopped there, the search called 36 of these 90 pairs far (the cloud of
+    seed 1 kept pairs 0.55 - 0.66 apart). The verdict must be that of the same
+    rule's length minimised over a grid of α 5e-6 apart."""
+    from curvimesh.geodesic import parabola_length_rule, parabola_midnode
+
+    fld = load_metric_text(CIRCULAR_2500)
+    angles = np.linspace(0.3, 6.0, 6)
+    alphas = np.linspace(-0.05, 0.05, 20_001)
+    a_all, b_all = [], []
+    for off_a, off_b in ((2e-5, 5e-6), (-3e-5, -3e-5), (-2e-5, -4e-6), (1e-5, 3e-5), (5e-5, 5e-5)):
+        for chord in (0.045, 0.055, 0.065):
+            turn = angles + chord / 0.3
+            a_all.append(0.5 + (0.3 + off_a) * np.column_stack([np.cos(angles), np.sin(angles)]))
+            b_all.append(0.5 + (0.3 + off_b) * np.column_stack([np.cos(turn), np.sin(turn)]))
+    a, b = np.concatenate(a_all), np.concatenate(b_all)
+    scanned = np.empty(len(a))
+    for i in range(len(a)):
+        x0, x1 = np.repeat(a[i : i + 1], len(alphas), 0), np.repeat(b[i : i + 1], len(alphas), 0)
+        scanned[i] = parabola_length_rule(fld, x0, x1, parabola_midnode(x0, x1, alphas)).min()
+    close = scanned < 0.7
+    assert 20 <= close.sum() <= len(a) - 20  # both verdicts are tested
+    assert (sampling.too_close(fld, a, b, 0.7) == close).all()
