@@ -36,7 +36,7 @@ Safety bounds, so that no input can hang the parser or exhaust memory:
   unevaluated ``Min``/``Max`` (sympy's n-ary simplification is quadratic);
 - ``diff`` may differentiate at most :data:`MAX_DIFF_WORK` sympy nodes in one
   expression (the cost of a derivative grows quickly with its operand);
-- building an expression may take at most :data:`TIME_LIMIT` seconds (sympy's
+- building an expression may take at most :data:`TIME_LIMIT` seconds of CPU (sympy's
   automatic simplification can take minutes on crafted input);
 - the result has at most :data:`MAX_SIZE` sympy nodes, nested at most
   :data:`MAX_TREE_DEPTH` deep (sympy's printers and lambdify recurse), once the
@@ -54,6 +54,7 @@ import difflib
 import math
 import operator
 import threading
+import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -106,7 +107,8 @@ MAX_EXPONENT = 64
 MAX_EXACT_BITS = 2048
 """Largest exact rational (in bits of numerator or denominator) a power may create."""
 TIME_LIMIT = 1.0
-"""Default bound on the seconds (wall clock) spent building one expression."""
+"""Default bound on the seconds of CPU time spent building one expression (wall-clock
+seconds where the platform cannot read a thread's CPU clock; see :func:`_time_limit`)."""
 
 _QUOTE_LENGTH = 60
 
@@ -444,7 +446,7 @@ class _OutOfTime(BaseException):
 
 @contextlib.contextmanager
 def _time_limit(seconds: float | None) -> Iterator[None]:
-    """Interrupt the code run inside after ``seconds`` (wall clock) with :class:`_OutOfTime`.
+    """Interrupt the code run inside after ``seconds`` of its CPU time with :class:`_OutOfTime`.
 
     Some simplifications sympy makes while an expression is built (assumption
     queries that end in polynomial gcds, for instance) take minutes on crafted
@@ -457,17 +459,36 @@ def _time_limit(seconds: float | None) -> Iterator[None]:
     so under a test suite's collector callback, the limit let 3.2 s of sympy
     run). An exception still pending when the work is done is cleared, under a
     lock, before leaving, so none escapes to the caller.
+
+    The time counted is the CPU time of this thread (its POSIX CPU clock), so
+    that a loaded machine does not trip the limit: the first expression of a
+    process, 0.09 s of CPU in sympy's cold caches, took more than 1 s of wall
+    clock beside three busy processes on two cores, and a valid metric file was
+    refused. Where the clock cannot be read the wall clock counts; either way the
+    work is interrupted after :data:`WALL_FACTOR` × ``seconds`` of wall clock.
     """
     if seconds is None:
         yield
         return
     thread_id = ctypes.c_ulong(threading.get_ident())
+    cpu = _thread_cpu_clock()
     lock = threading.Lock()
     ended = threading.Event()
     done = fired = False
+    started = time.monotonic()
+    spent_before = cpu() if cpu is not None else 0.0
 
     def fire() -> None:
         nonlocal fired
+        while cpu is not None:  # until the thread has spent ``seconds`` of CPU time
+            try:
+                left = seconds - (cpu() - spent_before)
+            except OSError:  # the thread has ended
+                return
+            if left <= 0 or time.monotonic() - started >= WALL_FACTOR * seconds:
+                break
+            if ended.wait(left):
+                return
         while True:
             with lock:
                 if done:
@@ -498,6 +519,21 @@ def _time_limit(seconds: float | None) -> Iterator[None]:
 
 #: Seconds between the time limit's shots once it is up (see :func:`_time_limit`).
 REFIRE = 0.05
+
+#: Wall-clock seconds, in multiples of its CPU limit, after which :func:`_time_limit`
+#: interrupts the work however little CPU time it had.
+WALL_FACTOR = 30.0
+
+
+def _thread_cpu_clock() -> Callable[[], float] | None:
+    """The CPU seconds of the calling thread as a function another thread can call, or
+    None where the platform has no per-thread CPU clock (``time.pthread_getcpuclockid``)."""
+    try:
+        clock_id = time.pthread_getcpuclockid(threading.get_ident())
+        time.clock_gettime(clock_id)
+    except (AttributeError, OSError):
+        return None
+    return lambda: time.clock_gettime(clock_id)
 
 
 # (thread id as c_ulong, exception class as py_object, or None: NULL, which clears)

@@ -462,6 +462,21 @@ def test_the_time_limit_is_not_lost_in_a_finalizer():
     assert time.perf_counter() - start < 1.0
 
 
+@pytest.mark.skipif(not hasattr(time, "pthread_getcpuclockid"), reason="no thread CPU clock")
+def test_the_time_limit_counts_cpu_time_not_waiting():
+    """A thread that waits (for the CPU on a loaded machine, or here asleep) spends no
+    CPU time: 0.4 s of sleep inside a limit of 0.1 s is not interrupted, while work is
+    (once its CPU time reaches the limit, long before the loop's 3 s)."""
+    from curvimesh import expressions
+
+    with expressions._time_limit(0.1):
+        time.sleep(0.4)
+    start = time.perf_counter()
+    with pytest.raises(expressions._OutOfTime), expressions._time_limit(0.1):
+        while time.perf_counter() - start < 3.0:
+            pass
+
+
 def test_a_time_limit_running_out_at_the_end_leaves_nothing_behind():
     # Limits about as long as the work: the interruption is due just as the work
     # ends. Either way nothing may be raised once parse_expression has returned.
