@@ -249,7 +249,14 @@ def _wedge(
     min_dist: float,
     max_length: float,
 ) -> tuple[NDArray, NDArray] | None:
-    """The staggering at corner ``k`` whose cross edges pass in the field (see :func:`_wedges`)."""
+    """The staggering at corner ``k`` whose cross edges pass in the field (see :func:`_wedges`).
+
+    A design that would not fit in half of the shorter side ends the redesigns: each
+    narrowing of the angle lengthens the staggering (it spans about ℓ_min / sin θ),
+    and at a corner of 0.6° in a spiral layer's metric the designs grew from 478 to
+    161,851 vertices in five rounds.
+    """
+    reach = 0.5 * min(tables[k][1][-1], tables[(k - 1) % 4][1][-1])
     for margin in WEDGE_MARGINS:
         angle = theta
         for _ in range(WEDGE_REDESIGNS):
@@ -258,6 +265,8 @@ def _wedge(
             )
             if w is None:
                 break
+            if max(w[0][-1], w[1][-1]) > reach:
+                return _field_wedge(field, tables, k, target, min_dist, max_length)
             first = _at_distance(field, tables, k, w[0], backwards=False)
             second = _at_distance(field, tables, (k - 1) % 4, w[1], backwards=True)
             # merged order a1, b1, a2, b2, ...: consecutive ones are on opposite sides
@@ -297,10 +306,12 @@ def _field_wedge(
     t_{k−1} + target and the smallest candidate beyond which every candidate
     of the other side is at least ℓ_min from t_k. Candidates are
     :data:`FIELD_WEDGE_STEP` apart; the staggering ends once both last
-    vertices are ℓ_min from every candidate of the other side up to the
-    reach of the next edge. The first distance is chosen among ``tries``
-    values as in :func:`wedge_distances`. None when no staggering fits in
-    half of the shorter side or within ``max_length``.
+    vertices are ℓ_min from every candidate of the other side from ``max_length``
+    before the previous vertex up to the reach of the next edge. The candidates
+    are measured by the search's rule, the chosen staggering's cross edges to
+    1e-5. The first distance is chosen among ``tries`` values as in
+    :func:`wedge_distances`. None when no staggering fits in half of the shorter
+    side or within ``max_length``, or when a cross edge of the chosen one is short.
     """
     lo = min_dist * (1.0 + margin)
     hi = max_length / (1.0 + margin)
@@ -313,14 +324,16 @@ def _field_wedge(
     def crosses(side: int, s: float, grid: NDArray) -> NDArray:
         """Lengths from the vertex at s on ``side`` to the candidates on the other side."""
         a = np.repeat(point(side, np.array([s])), len(grid), axis=0)
-        return shortest_parabola(field, a, point(1 - side, grid), remember=False).length
+        b = point(1 - side, grid)
+        return shortest_parabola(field, a, b, exact_length=False, remember=False).length
 
     best, best_edge = None, math.inf
     for t1 in np.linspace(max(target, lo), lo, tries):
         seq, far, edge = [0.0, float(t1)], [False], float(t1)
         while edge <= hi:
             side = (len(seq) - 2) % 2  # of the last vertex: 0 = first side
-            grid = np.arange(0.0, seq[-2] + hi + FIELD_WEDGE_STEP, FIELD_WEDGE_STEP)
+            first = max(0.0, FIELD_WEDGE_STEP * math.floor((seq[-2] - hi) / FIELD_WEDGE_STEP))
+            grid = np.arange(first, seq[-2] + hi + FIELD_WEDGE_STEP, FIELD_WEDGE_STEP)
             if grid[-1] > reach:
                 edge = math.inf
                 break
@@ -328,7 +341,7 @@ def _field_wedge(
             far.append(bool(c.min() >= lo))
             if far[-1] and far[-2]:
                 break
-            after = np.flatnonzero((c < lo) | (grid <= seq[-2]))[-1] + 1  # grid[0] = 0 is in
+            after = np.flatnonzero((c < lo) | (grid <= seq[-2]))[-1] + 1  # grid[0] is in
             t = max(seq[-2] + target, float(grid[after]) if after < len(grid) else math.inf)
             edge = max(edge, t - seq[-2])
             seq.append(t)
@@ -336,7 +349,12 @@ def _field_wedge(
             best, best_edge = seq, edge
     if best is None:
         return None
-    return np.array(best[1::2]), np.array(best[2::2])
+    a, b = np.array(best[1::2]), np.array(best[2::2])
+    merged = np.empty((len(a) + len(b), 2))
+    merged[0::2], merged[1::2] = point(0, a), point(1, b)
+    if shortest_parabola(field, merged[:-1], merged[1:], remember=False).length.min() < min_dist:
+        return None
+    return a, b
 
 
 #: Lengthenings tried at a corner whose cross edge the field makes short.
