@@ -125,18 +125,37 @@ def wedge_distances(
             return s
         return s * cos + math.sqrt(lo * lo - (s * sin) ** 2)
 
+    def next_distance(seq: list[float]) -> float | None:
+        if seq[-1] * sin >= lo and seq[-2] * sin >= lo:
+            return None
+        return max(seq[-2] + target, t_cross(seq[-1]))
+
+    best = _best_staggering(np.linspace(max(target, lo), lo, tries), hi, next_distance)
+    if best is None:
+        return None
+    return np.array(best[1::2]), np.array(best[2::2])
+
+
+def _best_staggering(firsts: NDArray, hi: float, next_distance) -> list[float] | None:
+    """The staggering 0 = t₀ < t₁ < … whose longest side edge t_{k+1} − t_{k−1} (or t₁)
+    is shortest, over the first distances ``firsts`` (the first such), or None.
+
+    ``next_distance(seq)`` gives the distance that follows ``seq`` (inf when there is
+    none), or None once the staggering may end; a staggering with a side edge longer
+    than ``hi`` is dropped.
+    """
     best, best_edge = None, math.inf
-    for t1 in np.linspace(max(target, lo), lo, tries):
+    for t1 in firsts:
         seq, edge = [0.0, float(t1)], float(t1)
-        while edge <= hi and not (seq[-1] * sin >= lo and seq[-2] * sin >= lo):
-            t = max(seq[-2] + target, t_cross(seq[-1]))
+        while edge <= hi:
+            t = next_distance(seq)
+            if t is None:
+                break
             edge = max(edge, t - seq[-2])
             seq.append(t)
         if edge <= hi and edge < best_edge:
             best, best_edge = seq, edge
-    if best is None:
-        return None
-    return np.array(best[1::2]), np.array(best[2::2])
+    return best
 
 
 #: Margins tried in turn for a corner's staggering, until its cross edges pass in the metric.
@@ -327,26 +346,24 @@ def _field_wedge(
         b = point(1 - side, grid)
         return shortest_parabola(field, a, b, exact_length=False, remember=False).length
 
-    best, best_edge = None, math.inf
-    for t1 in np.linspace(max(target, lo), lo, tries):
-        seq, far, edge = [0.0, float(t1)], [False], float(t1)
-        while edge <= hi:
-            side = (len(seq) - 2) % 2  # of the last vertex: 0 = first side
-            first = max(0.0, FIELD_WEDGE_STEP * math.floor((seq[-2] - hi) / FIELD_WEDGE_STEP))
-            grid = np.arange(first, seq[-2] + hi + FIELD_WEDGE_STEP, FIELD_WEDGE_STEP)
-            if grid[-1] > reach:
-                edge = math.inf
-                break
-            c = crosses(side, seq[-1], grid)
-            far.append(bool(c.min() >= lo))
-            if far[-1] and far[-2]:
-                break
-            after = np.flatnonzero((c < lo) | (grid <= seq[-2]))[-1] + 1  # grid[0] is in
-            t = max(seq[-2] + target, float(grid[after]) if after < len(grid) else math.inf)
-            edge = max(edge, t - seq[-2])
-            seq.append(t)
-        if edge <= hi and edge < best_edge:
-            best, best_edge = seq, edge
+    far: list[bool] = []  # of each vertex of the staggering being made, the corner's False
+
+    def next_distance(seq: list[float]) -> float | None:
+        if len(seq) == 2:
+            far[:] = [False]
+        side = (len(seq) - 2) % 2  # of the last vertex: 0 = first side
+        first = max(0.0, FIELD_WEDGE_STEP * math.floor((seq[-2] - hi) / FIELD_WEDGE_STEP))
+        grid = np.arange(first, seq[-2] + hi + FIELD_WEDGE_STEP, FIELD_WEDGE_STEP)
+        if grid[-1] > reach:
+            return math.inf
+        c = crosses(side, seq[-1], grid)
+        far.append(bool(c.min() >= lo))
+        if far[-1] and far[-2]:
+            return None
+        after = np.flatnonzero((c < lo) | (grid <= seq[-2]))[-1] + 1  # grid[0] is in
+        return max(seq[-2] + target, float(grid[after]) if after < len(grid) else math.inf)
+
+    best = _best_staggering(np.linspace(max(target, lo), lo, tries), hi, next_distance)
     if best is None:
         return None
     a, b = np.array(best[1::2]), np.array(best[2::2])
