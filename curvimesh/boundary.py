@@ -275,7 +275,7 @@ def _wedge(
     and at a corner of 0.6° in a spiral layer's metric the designs grew from 478 to
     161,851 vertices in five rounds.
     """
-    reach = 0.5 * min(tables[k][1][-1], tables[(k - 1) % 4][1][-1])
+    reach = _wedge_reach(tables, k)
     for margin in WEDGE_MARGINS:
         angle = theta
         for _ in range(WEDGE_REDESIGNS):
@@ -286,16 +286,30 @@ def _wedge(
                 break
             if max(w[0][-1], w[1][-1]) > reach:
                 return _field_wedge(field, tables, k, target, min_dist, max_length)
-            first = _at_distance(field, tables, k, w[0], backwards=False)
-            second = _at_distance(field, tables, (k - 1) % 4, w[1], backwards=True)
-            # merged order a1, b1, a2, b2, ...: consecutive ones are on opposite sides
-            merged = np.empty((len(first) + len(second), 2))
-            merged[0::2], merged[1::2] = first, second
-            shortest = float(shortest_parabola(field, merged[:-1], merged[1:]).length.min())
+            shortest = float(_cross_lengths(field, tables, k, w).min())
             if shortest >= min_dist:
                 return w
             angle *= 0.98 * shortest / (min_dist * (1.0 + margin))
     return _field_wedge(field, tables, k, target, min_dist, max_length)
+
+
+def _wedge_reach(tables, k: int) -> float:
+    """Half the metric length of the shorter side at corner ``k``: the farthest a
+    staggering of that corner may reach along either side."""
+    return 0.5 * min(tables[k][1][-1], tables[(k - 1) % 4][1][-1])
+
+
+def _cross_lengths(
+    field: MetricField, tables, k: int, w: tuple[NDArray, NDArray], *, remember: bool = True
+) -> NDArray:
+    """Shortest-parabola lengths of the cross edges of the staggering ``w`` at corner ``k``
+    (distances along its first side and along its second): between consecutive vertices
+    of the merged order a1, b1, a2, b2, …, which lie on opposite sides."""
+    first = _at_distance(field, tables, k, w[0], backwards=False)
+    second = _at_distance(field, tables, (k - 1) % 4, w[1], backwards=True)
+    merged = np.empty((len(first) + len(second), 2))
+    merged[0::2], merged[1::2] = first, second
+    return shortest_parabola(field, merged[:-1], merged[1:], remember=remember).length
 
 
 #: Spacing (metric length along a side) of the candidate vertices of :func:`_field_wedge`.
@@ -335,7 +349,7 @@ def _field_wedge(
     lo = min_dist * (1.0 + margin)
     hi = max_length / (1.0 + margin)
     sides = (k, (k - 1) % 4)  # odd entries of the sequence on the first, even on the second
-    reach = 0.5 * min(tables[sides[0]][1][-1], tables[sides[1]][1][-1])
+    reach = _wedge_reach(tables, k)
 
     def point(side: int, dist: NDArray) -> NDArray:
         return _at_distance(field, tables, sides[side], dist, backwards=side == 1)
@@ -366,12 +380,10 @@ def _field_wedge(
     best = _best_staggering(np.linspace(max(target, lo), lo, tries), hi, next_distance)
     if best is None:
         return None
-    a, b = np.array(best[1::2]), np.array(best[2::2])
-    merged = np.empty((len(a) + len(b), 2))
-    merged[0::2], merged[1::2] = point(0, a), point(1, b)
-    if shortest_parabola(field, merged[:-1], merged[1:], remember=False).length.min() < min_dist:
+    w = np.array(best[1::2]), np.array(best[2::2])
+    if _cross_lengths(field, tables, k, w, remember=False).min() < min_dist:
         return None
-    return a, b
+    return w
 
 
 #: Lengthenings tried at a corner whose cross edge the field makes short.
