@@ -16,6 +16,7 @@ from curvimesh.metric import (
     UNIT_TRIANGLE_AREA,
     density_integral,
     frame_turn,
+    layer_sag,
     load_metric,
     load_metric_text,
     sharpest_turn,
@@ -279,6 +280,24 @@ def test_frame_turn_of_spokes_is_the_fine_tangential_size_over_the_radius():
     a = np.array([0.3, 2.0, -1.0, 4.0])
     g, dg = fld.evaluate(np.column_stack([r * np.cos(a), r * np.sin(a)]), derivatives=True)
     np.testing.assert_allclose(frame_turn(g, dg), 0.005 / r, rtol=1e-12)
+
+
+def test_layer_sag_of_rings_is_the_sagitta_of_a_unit_chord_in_radial_sizes():
+    """Rings of tangential size 0.1 and radial size 0.005: a chord of 0.1 (one unit)
+    along a circle of radius r strays 0.1² / (8r) from it, 0.1² / (8r · 0.005) radial
+    sizes; spokes (0.1 radial, 0.005 tangential) turn only along their fine size: no
+    sag; nor has a constant field."""
+    r = np.array([0.1, 0.2, 0.5, 0.9])
+    a = np.array([0.3, 2.0, -1.0, 4.0])
+    pts = np.column_stack([r * np.cos(a), r * np.sin(a)])
+    g, dg = load_metric_text(RINGS).evaluate(pts, derivatives=True)
+    np.testing.assert_allclose(layer_sag(g, dg), 0.1**2 / (8 * r * 0.005), rtol=1e-12)
+    assert not layer_sag(g, dg, min_anisotropy=21).any()
+    spokes = load_metric_text(RINGS.replace("[0.005, 0.1]", "[0.1, 0.005]"))
+    g, dg = spokes.evaluate(pts, derivatives=True)
+    np.testing.assert_allclose(layer_sag(g, dg), 0.0, atol=1e-12)
+    const = load_metric_text(RINGS.replace("atan2(y, x)", "0.7"))
+    assert not layer_sag(*const.evaluate(pts, derivatives=True)).any()
 
 
 def test_frame_turn_is_zero_for_a_constant_metric_and_sharpest_turn_is_nearest_the_centre():

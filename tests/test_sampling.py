@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from curvimesh import fill, sampling
 from curvimesh.boundary import discretize_box
-from curvimesh.metric import load_metric, load_metric_text
+from curvimesh.metric import frame_turn, layer_sag, load_metric, load_metric_text
 
 METRICS = Path(__file__).resolve().parent.parent / "metrics"
 
@@ -266,6 +266,28 @@ def test_the_front_shoots_along_the_principal_directions_where_the_frame_turns_f
     np.testing.assert_array_equal(shots[1], [True, True, True, False])
     hexa = sampling.turned_directions(g[1:], arrival[1:], sampling.FRONT_TURNS)[0]
     np.testing.assert_array_equal(dirs[1, :3], hexa)
+
+
+def test_the_front_shoots_along_the_principal_directions_in_a_thin_layer_turning_slowly():
+    # the circles above at 200:1 (radial size 0.0005): at ρ = 0.8 the frame still
+    # turns 7.2° per unit, but a unit chord along the circle strays
+    # 0.1² / (8 ρ 0.0005) = 3.1 radial sizes from it, over HEX_MAX_SAG; at 20:1,
+    # 0.31, under it
+    thin = load_metric_text(CIRCLES.replace("0.005", "0.0005"))
+    front = np.array([[1.3, 0.0]])
+    arrival = np.array([[0.0, 0.1]])
+    for fld, sag, lattice in ((thin, 3.125, False), (load_metric_text(CIRCLES), 0.3125, True)):
+        g, dg = fld.evaluate(front, derivatives=True)
+        assert math.isclose(float(layer_sag(g, dg)[0]), sag, rel_tol=1e-9)
+        assert float(frame_turn(g, dg)[0]) < sampling.HEX_MAX_TURN
+        dirs, _ = sampling.front_directions(
+            fld, front, arrival, arrival, sampling.FRONT_TURNS, hexagons=True
+        )
+        if lattice:
+            hexa = sampling.turned_directions(g, arrival, sampling.FRONT_TURNS)[0]
+            np.testing.assert_array_equal(dirs[0, :3], hexa)
+        else:
+            np.testing.assert_array_equal(dirs[0], sampling.principal_directions(g)[0])
 
 
 def test_the_look_ahead_sees_the_frame_turn_fast_one_step_inwards():
