@@ -28,8 +28,8 @@ For every metric file, thirteen meshes, each stage added to the previous ones:
 * ``+ bend``: and the nodes of the edges of the triangles still below quality 0.8
   bent off their parabolas where that raises the worse quality of their two
   triangles (:mod:`curvimesh.bend`): every stage on, the default ``adapt``
-  without its second run (``--no-retry``: the rows are built stage by stage; that run
-  starts only where an edge longer than 1.5 is left).
+  without its further runs (``--no-retry``: the rows are built stage by stage; those
+  runs start only where an edge longer than 1.5 is left).
 
 The stages are shared where they coincide (three samplings: the paper's,
 with hexagons, with hexagons and filling; one curving of each and of the
@@ -150,8 +150,7 @@ def section(results: list[dict], seed: int) -> str:
         f"seed {seed}): *paper* is `adapt --no-hexagons --no-fill --no-relocate "
         "--no-intrinsic --no-insert --no-split --no-recurve --no-length-swaps --no-shift "
         "--no-remove --no-repeat --no-bend`, *+ hexagons* samples the points on a hexagonal "
-        "lattice where the metric's directions turn less than 10° per unit length "
-        "and a unit chord along a thin layer strays less than half its short size, "
+        "lattice where the metric's directions turn less than 10° per unit length, "
         "*+ fill* adds gap filling, *+ relocate* vertex relocation, *+ intrinsic* "
         "intrinsic Delaunay flips where the metric's directions turn 60° or more per unit "
         "length, *+ insert* "
@@ -163,9 +162,10 @@ def section(results: list[dict], seed: int) -> str:
         "clean-up stages repeated while edges longer than 1.4 or triangles below quality "
         "0.3 are left, *+ bend* the nodes of the edges of the triangles still below "
         "quality 0.8 bent off their parabolas where that raises the worse of their two "
-        "triangles (the default `adapt`, the meshes above; its second run without the "
-        "hexagonal lattice, made where an edge longer than 1.5 is left, starts on none of "
-        "them). Seconds are the whole adaptation of each row.\n\n"
+        "triangles (the default `adapt`, the meshes above; its further runs, with the "
+        "hexagonal lattice kept out of thin curved layers and then without it, made where "
+        "an edge longer than 1.5 is left, start on none of them). Seconds are the whole "
+        "adaptation of each row.\n\n"
         f"{table(results)}\n{END}\n"
     )
 

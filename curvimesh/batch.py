@@ -501,6 +501,7 @@ def run_batch(
             "seed": opt.seed,
             **{name: getattr(opt, name) for name in pipeline.STAGES},
             "retry": opt.retry,
+            **({"max_sag": opt.sampling.max_sag} if math.isfinite(opt.sampling.max_sag) else {}),
             "straight": opt.straight,
             "format": fmt,
             "jobs": jobs,
@@ -613,6 +614,8 @@ def _options_text(opts: dict) -> str:
         off.append("--no-retry")
     if opts.get("straight"):
         off.append("--straight")
+    if "max_sag" in opts:
+        off.append(f"--max-sag {opts['max_sag']:g}")
     return f"seed {opts.get('seed', 0)}, " + (" ".join(off) if off else "every stage on")
 
 

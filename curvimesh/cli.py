@@ -39,6 +39,7 @@ from curvimesh.metric import (
     sharpest_turn,
 )
 from curvimesh.report import format_report, mesh_report
+from curvimesh.sampling import HEX_MAX_SAG, SamplingOptions
 
 
 class _Terminated(BaseException):
@@ -234,7 +235,24 @@ def retry_option(fn: Callable) -> Callable:
         "--no-retry",
         "no_retry",
         is_flag=True,
-        help=("No second run without the hexagonal lattice when an edge longer than 1.5 is left."),
+        help=(
+            "No further runs (the hexagonal lattice kept out of thin curved layers, then "
+            "no lattice) when an edge longer than 1.5 is left."
+        ),
+    )(fn)
+
+
+def max_sag_option(fn: Callable) -> Callable:
+    return click.option(
+        "--max-sag",
+        "max_sag",
+        type=click.FloatRange(min=0.0, min_open=True),
+        default=None,
+        help=(
+            "Keep the hexagonal lattice out of thin curved layers: where a unit chord along "
+            "the layer strays this many of its short sizes or more from it (adapt's second "
+            f"run uses {HEX_MAX_SAG}). Default: no bound."
+        ),
     )(fn)
 
 
@@ -244,12 +262,16 @@ def _options(
     max_vertices: int = pipeline.MAX_VERTICES,
     straight: bool = False,
     retry: bool = True,
+    max_sag: float | None = None,
     **stages: bool,
 ) -> pipeline.AdaptOptions:
-    """The pipeline's options; ``stages`` switches stages by their :class:`AdaptOptions` field."""
+    """The pipeline's options; ``stages`` switches stages by their :class:`AdaptOptions` field,
+    ``max_sag`` (None: no bound) is the sampling's :attr:`SamplingOptions.max_sag`."""
+    sampling = SamplingOptions(max_sag=math.inf if max_sag is None else max_sag)
     return pipeline.AdaptOptions(
-        seed=seed, max_vertices=max_vertices, straight=straight, retry=retry, **stages
-    )
+        seed=seed, max_vertices=max_vertices, straight=straight, retry=retry,
+        sampling=sampling, **stages,
+    )  # fmt: skip
 
 
 #: The help of each stage's flag --no-FIELD (FIELD its AdaptOptions field).
@@ -435,11 +457,12 @@ def geodesic(ctx: Context, metric_path, start, end, angle, length) -> None:
 @seed_option
 @max_vertices_option
 @stage_flags("hexagons", "fill")
+@max_sag_option
 @command
-def sample(ctx: Context, metric_path, output, fmt, seed, max_vertices, stages) -> None:
+def sample(ctx: Context, metric_path, output, fmt, seed, max_vertices, stages, max_sag) -> None:
     """Stage 1: sample points (Algorithm 1, then gap filling); writes nodes with vertex cells."""
     fld = load_metric(metric_path)
-    opt = _options(seed=seed, max_vertices=max_vertices, **stages)
+    opt = _options(seed=seed, max_vertices=max_vertices, max_sag=max_sag, **stages)
     pipeline.check_size(fld, max_vertices)
     cloud = pipeline.sample(fld, opt)
     ctx.progress(f"sample: {len(cloud.points)} points")
@@ -534,6 +557,7 @@ def _require_triangles(mesh, path: str):
 @straight_option
 @stage_flags()
 @retry_option
+@max_sag_option
 @command
 def adapt(
     ctx: Context,
@@ -546,6 +570,7 @@ def adapt(
     straight,
     stages,
     no_retry,
+    max_sag,
 ) -> None:
     """All stages: sample | triangulate | curve | swap, in one process.
 
@@ -560,14 +585,16 @@ def adapt(
     and --no-fit turn them off, so that the paper's method alone is `--no-hexagons
     --no-fill --no-relocate --no-intrinsic --no-insert --no-split --no-recurve
     --no-length-swaps --no-shift --no-remove --no-repeat --no-bend --no-fit`. When an
-    edge longer than 1.5 is left, all stages run again without the hexagonal lattice
-    and the mesh with the shorter longest edge is kept (--no-retry: not).
+    edge longer than 1.5 is left, all stages run again with the hexagonal lattice kept
+    out of thin curved layers (--max-sag 0.5), then, if one is still left, without the
+    lattice, and the mesh with the shortest longest edge is kept (--no-retry: not).
     """
     fld = load_metric(metric_path)
     _warn_turn(ctx, fld)
     opt = _options(
-        seed=seed, max_vertices=max_vertices, straight=straight, retry=not no_retry, **stages
-    )
+        seed=seed, max_vertices=max_vertices, straight=straight, retry=not no_retry,
+        max_sag=max_sag, **stages,
+    )  # fmt: skip
     t0 = time.perf_counter()
     res = pipeline.adapt(fld, opt, progress=ctx.progress)
     total = time.perf_counter() - t0
@@ -709,6 +736,7 @@ def circles(ctx: Context, metric_path, centres, plot_path) -> None:
 @straight_option
 @stage_flags()
 @retry_option
+@max_sag_option
 @command
 def batch(
     ctx: Context,
@@ -722,6 +750,7 @@ def batch(
     straight,
     stages,
     no_retry,
+    max_sag,
 ) -> None:
     """Adapt every metric file, write its mesh, report and pictures, and a summary.
 
@@ -733,7 +762,7 @@ def batch(
     from curvimesh.batch import parse_gate, run_batch, summary_table
 
     gates = [parse_gate(text) for text in requires]
-    opt = _options(seed=seed, straight=straight, retry=not no_retry, **stages)
+    opt = _options(seed=seed, straight=straight, retry=not no_retry, max_sag=max_sag, **stages)
     result = run_batch(
         metric_paths,
         out_dir,

@@ -518,8 +518,8 @@ def layer_sag(g: NDArray, dg: NDArray, *, min_anisotropy: float = TURN_MIN_ANISO
     many short sizes h_min: a circular layer of 2,500:1 about a circle of
     radius 0.3 (long size 0.1, τ = 1/3) strays 104 of its short sizes at the
     circle, a wall layer none. It can be large where the frame turns slowly
-    (:mod:`curvimesh.sampling` lays no hexagonal lattice where it passes
-    :data:`curvimesh.sampling.HEX_MAX_SAG`). Zero where the anisotropy is below
+    (the second run of :func:`curvimesh.adapt.adapt` lays no hexagonal lattice
+    where it passes :data:`curvimesh.sampling.HEX_MAX_SAG`). Zero where the anisotropy is below
     ``min_anisotropy``.
     """
     _, along, anisotropy = _frame_rates(g, dg)

@@ -87,6 +87,41 @@ def test_stage_pipeline_through_pipes_is_byte_identical_to_adapt(adapted, workdi
     assert s.stdout.startswith(b"$MeshFormat")
 
 
+THIN_RING = """
+name: ring
+domain: {box: [[0, 0], [1, 1]]}
+definitions:
+  r: sqrt((x - 0.5)**2 + (y - 0.5)**2)
+metric:
+  eigen:
+    sizes: ['min(0.0002 + 0.25*abs(r - 0.3), 0.05)', 0.05]
+    angle: atan2(y - 0.5, x - 0.5)
+"""
+
+
+def test_sample_max_sag_is_the_bounded_lattice_of_adapts_second_run(workdir):
+    # a ring of 250:1 turning 9.5° per unit (under HEX_MAX_SAG's turn bound) with a
+    # sag of 5.2 short sizes at its circle: --max-sag 0.5 samples what adapt's
+    # second run samples, and another cloud than the unbounded lattice
+    from curvimesh import adapt as pipeline
+    from curvimesh.io import read_mesh
+    from curvimesh.metric import load_metric_text
+    from curvimesh.sampling import HEX_MAX_SAG
+
+    (workdir / "ring.yaml").write_text(THIN_RING)
+    clouds = {}
+    for flags in ((), ("--max-sag", str(HEX_MAX_SAG))):
+        out = f"ring{len(flags)}.msh"
+        r = run("sample", "--metric", "ring.yaml", "-o", out, "-q", *flags, cwd=workdir)
+        assert r.returncode == 0, r.stderr.decode()
+        clouds[len(flags)] = read_mesh(workdir / out).points
+    fld = load_metric_text(THIN_RING)
+    _, bounded = pipeline.retries(pipeline.AdaptOptions())[0]
+    np.testing.assert_array_equal(clouds[2], pipeline.sample(fld, bounded).points)
+    np.testing.assert_array_equal(clouds[0], pipeline.sample(fld).points)
+    assert len(clouds[0]) != len(clouds[2])
+
+
 def test_same_seed_same_bytes_and_other_seed_still_valid(adapted, workdir):
     r = run("adapt", "--metric", "m.yaml", "-o", "b.msh", "--seed", "0", cwd=workdir)
     assert r.returncode == 0

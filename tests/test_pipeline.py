@@ -18,6 +18,7 @@ from curvimesh.mesh import Mesh
 from curvimesh.metric import UNIT_TRIANGLE_AREA, load_metric_text
 from curvimesh.quality import edge_lengths
 from curvimesh.report import mesh_report
+from curvimesh.sampling import HEX_MAX_SAG, SamplingOptions
 
 
 def slow_check(mesh: Mesh) -> None:
@@ -737,38 +738,51 @@ def test_the_triangulation_of_the_filled_points_is_reused_and_is_a_fresh_ones():
     assert other is not first and np.array_equal(other.points, moved)
 
 
-def _fake_run(longest: dict[bool, float], calls: list):
-    """A stand-in for one run of the stages: records the hexagons option and returns
-    a result whose defects have the longest edge ``longest[hexagons]``."""
+def _kind(opt) -> int:
+    """A run's kind: the lattice everywhere (0), kept out of thin curved layers (1), no
+    lattice (2)."""
+    if not opt.hexagons:
+        return 2
+    return 1 if opt.sampling.max_sag == HEX_MAX_SAG else 0
+
+
+def _fake_run(longest: list[float], calls: list):
+    """A stand-in for one run of the stages: records the run's kind (:func:`_kind`) and
+    returns a result whose defects have the longest edge ``longest[kind]``, its swap
+    count the kind."""
 
     def run(fld, opt, progress):
-        calls.append(opt.hexagons)
-        found = pipeline.Defects(0, 0, 0.7, longest[opt.hexagons], 0.5)
+        kind = _kind(opt)
+        calls.append(kind)
+        found = pipeline.Defects(0, 0, 0.7, longest[kind], 0.5)
         seconds = {"sample": 1.0, "triangulate": 2.0, "curve": 3.0, "swap": 4.0}
         mesh = Mesh(np.zeros((3, 2)), np.array([[0, 1, 2]]), (0, 0, 1, 1))
-        return pipeline.AdaptResult(mesh, int(opt.hexagons), seconds, 1.0), found
+        return pipeline.AdaptResult(mesh, kind, seconds, 1.0), found
 
     return run
 
 
 @pytest.mark.parametrize(
-    ("first", "second", "options", "runs", "kept_hexagons"),
+    ("lengths", "options", "runs", "kept"),
     [
-        (1.5, 1.0, {}, [True], True),  # within 1.5: no second run
-        (2.0, 1.2, {}, [True, False], False),  # the second is better: kept
-        (2.0, 2.5, {}, [True, False], True),  # worse: the first kept
-        (2.0, 2.0, {}, [True, False], True),  # a tie: the first
-        (2.0, 1.2, {"retry": False}, [True], True),
-        (2.0, 1.2, {"hexagons": False}, [False], False),  # no lattice to leave out
+        ((1.5, 1.0, 1.0), {}, [0], 0),  # within 1.5: no second run
+        ((2.0, 1.2, 1.0), {}, [0, 1], 1),  # the second within 1.5: kept, no third
+        ((2.0, 1.6, 1.2), {}, [0, 1, 2], 2),  # the third is the best: kept
+        ((2.0, 1.6, 1.8), {}, [0, 1, 2], 1),  # the second is
+        ((2.0, 2.5, 3.0), {}, [0, 1, 2], 0),  # both worse: the first kept
+        ((2.0, 2.0, 2.0), {}, [0, 1, 2], 0),  # ties: the first
+        ((2.0, 1.2, 1.0), {"retry": False}, [0], 0),
+        ((2.0, 1.2, 1.0), {"hexagons": False}, [2], 2),  # no lattice to leave out
+        ((2.0, 1.6, 1.2), {"sampling": SamplingOptions(max_sag=0.3)}, [0, 2], 2),  # bounded
     ],
 )
-def test_a_run_leaving_a_long_edge_is_made_again_without_the_lattice(
-    monkeypatch, first, second, options, runs, kept_hexagons
+def test_a_run_leaving_a_long_edge_is_made_again_with_less_lattice(
+    monkeypatch, lengths, options, runs, kept
 ):
     calls: list = []
-    monkeypatch.setattr(pipeline, "_run", _fake_run({True: first, False: second}, calls))
+    monkeypatch.setattr(pipeline, "_run", _fake_run(list(lengths), calls))
     fld = load_metric_text("name: m\ndomain: {box: [[0, 0], [1, 1]]}\nmetric: {isotropic: 1}\n")
     res = pipeline.adapt(fld, pipeline.AdaptOptions(**options))
     assert calls == runs
-    assert res.swaps == int(kept_hexagons)  # the fake's swap count tells which run
+    assert res.swaps == kept  # the fake's swap count tells which run
     assert res.seconds["swap"] == 4.0 * len(runs)

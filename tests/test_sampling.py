@@ -272,16 +272,21 @@ def test_the_front_shoots_along_the_principal_directions_in_a_thin_layer_turning
     # the circles above at 200:1 (radial size 0.0005): at ρ = 0.8 the frame still
     # turns 7.2° per unit, but a unit chord along the circle strays
     # 0.1² / (8 ρ 0.0005) = 3.1 radial sizes from it, over HEX_MAX_SAG; at 20:1,
-    # 0.31, under it
+    # 0.31, under it; with no bound on the sag (the default), the lattice either way
     thin = load_metric_text(CIRCLES.replace("0.005", "0.0005"))
     front = np.array([[1.3, 0.0]])
     arrival = np.array([[0.0, 0.1]])
-    for fld, sag, lattice in ((thin, 3.125, False), (load_metric_text(CIRCLES), 0.3125, True)):
+    bound = sampling.HEX_MAX_SAG
+    for fld, sag, max_sag, lattice in (
+        (thin, 3.125, bound, False),
+        (load_metric_text(CIRCLES), 0.3125, bound, True),
+        (thin, 3.125, math.inf, True),
+    ):
         g, dg = fld.evaluate(front, derivatives=True)
         assert math.isclose(float(layer_sag(g, dg)[0]), sag, rel_tol=1e-9)
         assert float(frame_turn(g, dg)[0]) < sampling.HEX_MAX_TURN
         dirs, _ = sampling.front_directions(
-            fld, front, arrival, arrival, sampling.FRONT_TURNS, hexagons=True
+            fld, front, arrival, arrival, sampling.FRONT_TURNS, True, max_sag
         )
         if lattice:
             hexa = sampling.turned_directions(g, arrival, sampling.FRONT_TURNS)[0]
