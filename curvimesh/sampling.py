@@ -157,7 +157,8 @@ HEX_MAX_TURN = math.radians(10.0)
 #: frame turns slowly, at seeds 0 – 2: without this bound 38 of 48 meshes met the
 #: targets (14 minutes; the misses: efficiency 1.16 – 1.18 after the second run, or
 #: edges of 4.7 – 10.4); with 1, 46 (5 minutes); with 0.5, 45 (4 minutes; one an
-#: edge of 0.699 left by relocation, since mended: :func:`curvimesh.smooth.closer_than`).
+#: edge of 0.699 left by relocation, since mended: :mod:`curvimesh.smooth` asks
+#: :func:`too_close`).
 #: The other misses: a layer of 5,000:1 at seeds 1 and 2, edges of 9.3 – 10.6. With
 #: 0.25 the tight front (metrics/hard) needed its second run at seed 0. Not a
 #: bound of the first run: a wall layer of 1,000:1 along the parabola

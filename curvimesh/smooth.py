@@ -19,10 +19,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from curvimesh.freenode import parabola_verdicts, shortest_parabola
+from curvimesh.freenode import shortest_parabola
 from curvimesh.geodesic import geodesic_alpha, parabola_length_rule, parabola_midnode
 from curvimesh.mesh import Mesh, signed_areas
 from curvimesh.metric import MetricField
+from curvimesh.sampling import too_close
 from curvimesh.triangulate import metric_delaunay
 
 
@@ -100,23 +101,6 @@ def tracked_lengths(
     return length, kept
 
 
-def closer_than(field: MetricField, points: NDArray, edges: NDArray, min_dist: float) -> NDArray:
-    """Whether the shortest parabola of each edge ``(E, 2)`` is shorter than
-    ``min_dist`` ``(E,)``, decided as the sampling's closeness test decides it
-    (:func:`curvimesh.freenode.parabola_verdicts`: the search refined until its
-    verdict is not contradicted by its bracket's convex floor).
-
-    A length searched to :data:`ALPHA_TOL` in α is an upper bound that can hide a
-    short edge: in a circular layer of 1,000:1 about a circle of radius 0.45 (0.04
-    along it, seed 2), an edge the search measured at 0.70008 is 0.69915 long, its
-    best α 1.5e-4 from the search's.
-    """
-    if len(edges) == 0:
-        return np.zeros(0, dtype=bool)
-    a, b = points[edges[:, 0]], points[edges[:, 1]]
-    return parabola_verdicts(field, a, b, short=min_dist) < 0
-
-
 def carried(old_edges: NDArray, values: NDArray, edges: NDArray, n: int) -> NDArray:
     """Values ``(E,)`` of ``edges`` ``(E, 2)`` from the same edges in ``old_edges``
     ``(E', 2)`` (``values`` ``(E',)``; both sorted, as :attr:`Mesh.edges`, ``n`` points),
@@ -190,9 +174,12 @@ def _undo_bad_moves(
         if near.size:
             ln[near], al[near] = edge_parabola_lengths(field, new, edges[rows[near]], al[near])
             # the search stops within ALPHA_TOL of the best α, and in a thin layer the
-            # length's valley in α is narrower: the verdict decides (:func:`closer_than`)
+            # length's valley in α is narrower (u51, seed 2: an edge searched at 0.70008
+            # is 0.69915, its best α 1.5e-4 away): the sampling's closeness test, whose
+            # search goes on while its bracket's floor contradicts it, decides
             near = near[ln[near] >= min_dist]
-            short[near] = closer_than(field, new, edges[rows[near]], min_dist)
+            e = edges[rows[near]]
+            short[near] = too_close(field, new[e[:, 0]], new[e[:, 1]], min_dist)
         length[rows], alpha[rows] = ln, al
         bad_e[rows] = (ln < min_dist) | short | (ln > longest[rows])
 

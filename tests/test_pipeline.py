@@ -565,27 +565,21 @@ def test_relocation_makes_no_edge_shorter_than_min_dist_where_the_frame_turns_fa
     assert shortest_parabola(fld, pts[e[:, 0]], pts[e[:, 1]]).length.min() >= 0.7
 
 
-THIN_RING = """
-domain: {box: [[0, 0], [1, 1]]}
-definitions:
-  r: sqrt((x - 0.5)**2 + (y - 0.5)**2)
-metric:
-  eigen:
-    sizes: ['min(0.00004 + 0.25*abs(r - 0.45), 0.04)', 0.04]
-    angle: atan2(y - 0.5, x - 0.5)
-"""
-
-
 def test_relocation_undoes_a_move_whose_edge_only_the_verdict_finds_short():
-    # a circular layer of 1,000:1 (seed 2 of a sweep of such layers): relocation
+    # the circular layer of 1,000:1 of u51 (seed 2): relocation
     # moved the second vertex here and searched its edge from the stale α of the
     # row, to 2e-3 in α: 0.70008; the length's valley is narrower, and a scan of α
     # 1e-5 apart finds 0.6991. The verdict of the sampling's closeness test undoes
     # the move.
-    from curvimesh.geodesic import parabola_length_rule, parabola_midnode
-    from curvimesh.smooth import _undo_bad_moves, closer_than, edge_parabola_lengths
+    from pathlib import Path
 
-    fld = load_metric_text(THIN_RING)
+    from curvimesh.geodesic import parabola_length_rule, parabola_midnode
+    from curvimesh.metric import load_metric
+    from curvimesh.sampling import too_close
+    from curvimesh.smooth import _undo_bad_moves, edge_parabola_lengths
+
+    root = Path(__file__).resolve().parent.parent
+    fld = load_metric(root / "bench" / "robustness" / "u51_circ_layer_1000_near_sides.yaml")
     new = np.array(
         [[0.19142484045049163, 0.8264525630681274], [0.17301171424119244, 0.80791838220141]]
     )
@@ -596,7 +590,7 @@ def test_relocation_undoes_a_move_whose_edge_only_the_verdict_finds_short():
     a, b = np.repeat(new[:1], len(alpha), axis=0), np.repeat(new[1:], len(alpha), axis=0)
     scan = parabola_length_rule(fld, a, b, parabola_midnode(a, b, alpha))
     assert scan.min() < 0.6992
-    assert closer_than(fld, new, edge, 0.7)[0]
+    assert too_close(fld, new[:1], new[1:], 0.7)[0]
     old = new + np.array([[0.0, 0.0], [-0.0004, -0.0004]])
     got, _, _ = _undo_bad_moves(
         fld, old, new, np.array([1]), edge, np.zeros((0, 3), dtype=np.int64), 0.7,
