@@ -48,15 +48,15 @@ Safety bounds, so that no input can hang the parser or exhaust memory:
 from __future__ import annotations
 
 import ast
-import contextlib
 import ctypes
 import difflib
 import math
 import operator
+import sys
 import threading
 import time
 import warnings
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import NamedTuple
@@ -108,7 +108,7 @@ MAX_EXACT_BITS = 2048
 """Largest exact rational (in bits of numerator or denominator) a power may create."""
 TIME_LIMIT = 1.0
 """Default bound on the seconds of CPU time spent building one expression (wall-clock
-seconds where the platform cannot read a thread's CPU clock; see :func:`_time_limit`)."""
+seconds where the platform cannot read a thread's CPU clock; see :class:`_TimeLimit`)."""
 
 _QUOTE_LENGTH = 60
 
@@ -332,7 +332,7 @@ def parse_expression(
         _check_shape(tree)
         parser.check(tree.body)
     try:
-        with _time_limit(time_limit):
+        with _TimeLimit(time_limit):
             if tree is None:
                 result = parser.number(text, None)  # type: ignore[arg-type]  # int or float
             else:
@@ -444,8 +444,7 @@ class _OutOfTime(BaseException):
     """
 
 
-@contextlib.contextmanager
-def _time_limit(seconds: float | None) -> Iterator[None]:
+class _TimeLimit:
     """Interrupt the code run inside after ``seconds`` of its CPU time with :class:`_OutOfTime`.
 
     Some simplifications sympy makes while an expression is built (assumption
@@ -460,6 +459,12 @@ def _time_limit(seconds: float | None) -> Iterator[None]:
     run). An exception still pending when the work is done is cleared, under a
     lock, before leaving, so none escapes to the caller.
 
+    The shots stop, whatever happens to the block, once the frame that opened it
+    is no longer on the thread's stack, or after :data:`MAX_SHOTS`: a shot that
+    lands before the block's exit has marked it done can carry the exception
+    past that exit, and a timer that kept shooting would then interrupt whatever
+    the thread runs next, for ever.
+
     The time counted is the CPU time of this thread (its POSIX CPU clock), so
     that a loaded machine does not trip the limit: the first expression of a
     process, 0.09 s of CPU in sympy's cold caches, took more than 1 s of wall
@@ -467,60 +472,82 @@ def _time_limit(seconds: float | None) -> Iterator[None]:
     refused. Where the clock cannot be read the wall clock counts; either way the
     work is interrupted after :data:`WALL_FACTOR` × ``seconds`` of wall clock.
     """
-    if seconds is None:
-        yield
-        return
-    thread_id = ctypes.c_ulong(threading.get_ident())
-    cpu = _thread_cpu_clock()
-    lock = threading.Lock()
-    ended = threading.Event()
-    done = fired = False
-    started = time.monotonic()
-    spent_before = cpu() if cpu is not None else 0.0
 
-    def fire() -> None:
-        nonlocal fired
-        while cpu is not None:  # until the thread has spent ``seconds`` of CPU time
-            try:
-                left = seconds - (cpu() - spent_before)
-            except OSError:  # the thread has ended
-                return
-            if left <= 0 or time.monotonic() - started >= WALL_FACTOR * seconds:
-                break
-            if ended.wait(left):
-                return
-        while True:
-            with lock:
-                if done:
-                    return
-                fired = True
-                _set_async_exc(thread_id, ctypes.py_object(_OutOfTime))
-            if ended.wait(REFIRE):
-                return
+    def __init__(self, seconds: float | None) -> None:
+        self.seconds = seconds
+        self.lock = threading.Lock()
+        self.ended = threading.Event()
+        self.done = self.fired = False
+        self.timer: threading.Timer | None = None
 
-    timer = threading.Timer(seconds, fire)
-    timer.daemon = True
-    try:
-        timer.start()  # (a short limit can be up while start() waits for the thread)
-        yield
-    finally:
+    def __enter__(self) -> None:
+        if self.seconds is None:
+            return
+        self.ident = threading.get_ident()
+        self.thread_id = ctypes.c_ulong(self.ident)
+        self.opener = sys._getframe(1)  # the frame running the ``with`` statement
+        self.cpu = _thread_cpu_clock()
+        self.started = time.monotonic()
+        self.spent_before = self.cpu() if self.cpu is not None else 0.0
+        self.timer = threading.Timer(self.seconds, self._fire)
+        self.timer.daemon = True
+        self.timer.start()  # (a short limit can be up while start() waits for the thread)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.timer is None:
+            return
         while True:  # a shot may land here too, before ``done`` is set: again
             try:
-                with lock:
-                    done = True
-                    if fired:  # raised already, or pending: clear it (NULL clears)
-                        _set_async_exc(thread_id, None)
+                with self.lock:
+                    self.done = True
+                    if self.fired:  # raised already, or pending: clear it (NULL clears)
+                        _set_async_exc(self.thread_id, None)
                 break
             except _OutOfTime:
                 continue
-        ended.set()
-        timer.cancel()
+        self.ended.set()
+        self.timer.cancel()
+        self.opener = None
+
+    def _fire(self) -> None:
+        seconds, cpu = self.seconds, self.cpu
+        assert seconds is not None
+        while cpu is not None:  # until the thread has spent ``seconds`` of CPU time
+            try:
+                left = seconds - (cpu() - self.spent_before)
+            except OSError:  # the thread has ended
+                return
+            if left <= 0 or time.monotonic() - self.started >= WALL_FACTOR * seconds:
+                break
+            if self.ended.wait(left):
+                return
+        for _ in range(MAX_SHOTS):
+            with self.lock:
+                if self.done or not self._open():
+                    return
+                self.fired = True
+                _set_async_exc(self.thread_id, ctypes.py_object(_OutOfTime))
+            if self.ended.wait(REFIRE):
+                return
+
+    def _open(self) -> bool:
+        """Whether the frame that opened the block is still on its thread's stack."""
+        frame = sys._current_frames().get(self.ident)
+        while frame is not None:
+            if frame is self.opener:
+                return True
+            frame = frame.f_back
+        return False
 
 
-#: Seconds between the time limit's shots once it is up (see :func:`_time_limit`).
+#: Seconds between the time limit's shots once it is up (see :class:`_TimeLimit`).
 REFIRE = 0.05
 
-#: Wall-clock seconds, in multiples of its CPU limit, after which :func:`_time_limit`
+#: Shots after which :class:`_TimeLimit` gives up on a block that never ends (5 s of
+#: them at :data:`REFIRE`).
+MAX_SHOTS = 100
+
+#: Wall-clock seconds, in multiples of its CPU limit, after which :class:`_TimeLimit`
 #: interrupts the work however little CPU time it had.
 WALL_FACTOR = 30.0
 

@@ -456,7 +456,7 @@ def test_the_time_limit_is_not_lost_in_a_finalizer():
                 pass
 
     start = time.perf_counter()
-    with pytest.raises(expressions._OutOfTime), expressions._time_limit(0.05):
+    with pytest.raises(expressions._OutOfTime), expressions._TimeLimit(0.05):
         Slow()  # collected at once
         while time.perf_counter() - start < 3.0:
             pass
@@ -470,12 +470,54 @@ def test_the_time_limit_counts_cpu_time_not_waiting():
     (once its CPU time reaches the limit, long before the loop's 3 s)."""
     from curvimesh import expressions
 
-    with expressions._time_limit(0.1):
+    with expressions._TimeLimit(0.1):
         time.sleep(0.4)
     start = time.perf_counter()
-    with pytest.raises(expressions._OutOfTime), expressions._time_limit(0.1):
+    with pytest.raises(expressions._OutOfTime), expressions._TimeLimit(0.1):
         while time.perf_counter() - start < 3.0:
             pass
+
+
+def _busy(seconds: float) -> int:
+    """Bytecode for ``seconds`` of wall clock, where a stray interruption would land."""
+    end, loops = time.perf_counter() + seconds, 0
+    while time.perf_counter() < end:
+        loops += 1
+    return loops
+
+
+def test_a_time_limit_whose_opener_has_returned_stops_shooting():
+    """A block whose exit never ran (a shot can carry the exception past it) must not
+    interrupt what the thread runs after the frame that opened it has returned."""
+    from curvimesh import expressions
+
+    def open_and_return():
+        limit = expressions._TimeLimit(0.02)
+        limit.__enter__()  # the exit is never called
+        return limit
+
+    limit = open_and_return()
+    assert _busy(0.5) > 0  # the limit is up after 0.02 s of CPU; no shot may land
+    assert limit.timer.join(1.0) is None and not limit.timer.is_alive()
+    assert not limit.fired
+
+
+def test_a_time_limit_gives_up_after_its_last_shot(monkeypatch):
+    from curvimesh import expressions
+
+    monkeypatch.setattr(expressions, "MAX_SHOTS", 3)
+    shots = 0
+    limit = expressions._TimeLimit(0.02)
+    limit.__enter__()
+    end = time.perf_counter() + 2.0
+    while time.perf_counter() < end:  # a block that swallows every shot
+        try:
+            _busy(end - time.perf_counter())
+        except expressions._OutOfTime:
+            shots += 1
+    limit.__exit__(None, None, None)
+    assert shots == 3
+    assert not limit.timer.is_alive()
 
 
 def test_a_time_limit_running_out_at_the_end_leaves_nothing_behind():
