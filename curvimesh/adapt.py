@@ -26,7 +26,7 @@ from curvimesh.insert import insert_points
 from curvimesh.intrinsic import intrinsic_flips
 from curvimesh.mesh import Mesh
 from curvimesh.metric import UNIT_TRIANGLE_AREA, MetricField, density_integral
-from curvimesh.quality import fixed_rule_measures
+from curvimesh.quality import edge_lengths_fast, fixed_rule_measures
 from curvimesh.recurve import recurve
 from curvimesh.remove import remove_vertices
 from curvimesh.sampling import HEX_MAX_SAG, SamplingOptions, sample_points
@@ -93,6 +93,19 @@ STAGES = (
 #: A run of :func:`adapt` whose mesh keeps an edge longer than this (the longest edge
 #: issue 7 allows) is made again, differently (:func:`retries`, ``options.retry``).
 RETRY_ABOVE = 1.5
+
+#: A run whose curved mesh (stage 3) has more than this share of its edges longer
+#: than :data:`RETRY_ABOVE` (:func:`long_share`) is abandoned before its swap stage
+#: when another run follows (:func:`adapt`): the clean-up stages mend local defects,
+#: and so many long edges say that the point cloud itself is wrong. Measured on the
+#: first runs of 83 metrics at seed 0 (the 11 examples, ``bench/robustness`` and 19
+#: thin layers and fronts of 100:1 to 5,000:1) and of the closest ones at seeds 0 –
+#: 7: every run that ended within 1.5 had at most 8.4 % (``metrics/hard/tight_front``,
+#: 80° per unit, seed 0; the examples at most 6.6 %); the tight front's other seeds
+#: had 8.4 – 9.6 % and ended with edges of 1.46 – 8.3 (its later runs mend most), and
+#: the thin circular and elliptic layers that fail had 12 – 37 % and ended with
+#: edges of 4.2 – 34 after swap stages of 14 – 114 s.
+ABANDON_SHARE = 0.10
 
 #: The shortest-parabola searches the vertex shifts of one swap stage may make in all,
 #: per vertex of the mesh (:func:`curvimesh.shift.shift_vertices`, ``max_searches``).
@@ -457,24 +470,38 @@ def adapt(
     (:data:`curvimesh.sampling.HEX_MAX_SAG`), and keeping it out of such layers alone
     mends what leaving it out everywhere did at 1.16 – 1.18 times the ideal triangle
     count. Like Gmsh's ``Mesh.AlgorithmSwitchOnFailure``, another method where the
-    first fails.
+    first fails. A run that another follows is abandoned after its curving when
+    more than :data:`ABANDON_SHARE` of its edges are longer than
+    :data:`RETRY_ABOVE` (its swap stage is not run, it is not kept); the last run
+    is always finished.
     """
     opt = options or AdaptOptions()
-    kept, found = _run(fld, opt, progress)
     if not (opt.retry and opt.hexagons and not opt.straight):
-        return kept
-    seconds, area = dict(kept.seconds), kept.metric_area
-    longest = _longest(fld, kept, found)
-    for label, again in retries(opt):
-        if not longest > RETRY_ABOVE:
+        return _run(fld, opt, progress)[0]
+    runs = [("", opt), *retries(opt)]
+    kept, longest, seconds = None, np.inf, None
+    for i, (label, again) in enumerate(runs):
+        if i and not longest > RETRY_ABOVE:
             break
-        progress(f"an edge of {longest:.2f} is left: all stages again {label}")
-        run, found = _run(fld, again, progress)
-        seconds = {k: seconds[k] + run.seconds[k] for k in seconds}
+        if i:
+            left = "" if kept is None else f"an edge of {longest:.2f} is left: "
+            progress(f"{left}all stages again {label}")
+        last = i == len(runs) - 1
+        run, found = _run(fld, again, progress, abandon=not last)
+        seconds = (
+            dict(run.seconds)
+            if seconds is None
+            else {k: seconds[k] + run.seconds[k] for k in seconds}
+        )
+        area = run.metric_area
+        if run.swaps < 0:  # abandoned after its curving
+            continue
         length = _longest(fld, run, found)
         if length < longest:
             kept, longest = run, length
-            progress(f"kept the mesh {label}")
+            if i:
+                progress(f"kept the mesh {label}")
+    assert kept is not None and seconds is not None  # the last run is always finished
     return AdaptResult(kept.mesh, kept.swaps, seconds, area)
 
 
@@ -491,6 +518,17 @@ def retries(opt: AdaptOptions) -> list[tuple[str, AdaptOptions]]:
     return runs
 
 
+def long_share(fld: MetricField, mesh: Mesh) -> float:
+    """The share of a P2 mesh's edges longer than :data:`RETRY_ABOVE` (the optimisation
+    loops' rule of two segments, :func:`curvimesh.quality.edge_lengths_fast`, which
+    the swap stage measures the same edges with first)."""
+    pts, e = mesh.points, mesh.edges
+    if len(e) == 0:
+        return 0.0
+    length = edge_lengths_fast(fld, pts[e[:, 0]], pts[e[:, 1]], pts[mesh.edge_mid])
+    return float(np.count_nonzero(length > RETRY_ABOVE)) / len(e)
+
+
 def _longest(fld: MetricField, run: AdaptResult, found: Defects | None) -> float:
     """The longest edge of a run's unit mesh: from the defects its swap stage measured,
     else measured now (the final mesh: without a fit, the unit mesh)."""
@@ -498,11 +536,14 @@ def _longest(fld: MetricField, run: AdaptResult, found: Defects | None) -> float
 
 
 def _run(
-    fld: MetricField, opt: AdaptOptions, progress: Progress
+    fld: MetricField, opt: AdaptOptions, progress: Progress, *, abandon: bool = False
 ) -> tuple[AdaptResult, Defects | None]:
     """The stages of :func:`adapt`, once; the result and the defects of its unit mesh
     (before the fit, which trades lengths for the function's error, when there is one)
-    where the swap stage measured them."""
+    where the swap stage measured them. With ``abandon``, a curved mesh with more
+    than :data:`ABANDON_SHARE` of its edges longer than :data:`RETRY_ABOVE` ends the
+    run before its swap stage: its result then has the curved mesh, swaps −1 and 0
+    ``swap`` seconds."""
     seconds: dict[str, float] = {}
     t = time.perf_counter()
     area = check_size(fld, opt.max_vertices)
@@ -518,6 +559,15 @@ def _run(
     p2 = curve(fld, p1, opt)
     seconds["curve"] = time.perf_counter() - t
     progress(f"curve: done ({seconds['curve']:.1f} s)")
+    if abandon:
+        share = long_share(fld, p2)
+        if share > ABANDON_SHARE:
+            progress(
+                f"{share:.1%} of the curved edges are longer than {RETRY_ABOVE}: "
+                "the run is abandoned"
+            )
+            seconds["swap"] = 0.0
+            return AdaptResult(p2, -1, seconds, area), None
     t = time.perf_counter()
     res = swap(fld, p2, opt)
     seconds["swap"] = time.perf_counter() - t

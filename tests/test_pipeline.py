@@ -740,17 +740,23 @@ def _kind(opt) -> int:
     return 1 if opt.sampling.max_sag == HEX_MAX_SAG else 0
 
 
-def _fake_run(longest: list[float], calls: list):
+def _fake_run(longest: list[float], calls: list, gives_up: tuple[int, ...] = ()):
     """A stand-in for one run of the stages: records the run's kind (:func:`_kind`) and
     returns a result whose defects have the longest edge ``longest[kind]``, its swap
-    count the kind."""
+    count the kind; a run of a kind in ``gives_up`` is abandoned after its curving
+    when it may be (as :func:`curvimesh.adapt._run` does then: swaps −1, no swap time),
+    recorded as −1 − kind."""
 
-    def run(fld, opt, progress):
+    def run(fld, opt, progress, *, abandon=False):
         kind = _kind(opt)
+        mesh = Mesh(np.zeros((3, 2)), np.array([[0, 1, 2]]), (0, 0, 1, 1))
+        if abandon and kind in gives_up:
+            calls.append(-1 - kind)
+            seconds = {"sample": 1.0, "triangulate": 2.0, "curve": 3.0, "swap": 0.0}
+            return pipeline.AdaptResult(mesh, -1, seconds, 1.0), None
         calls.append(kind)
         found = pipeline.Defects(0, 0, 0.7, longest[kind], 0.5)
         seconds = {"sample": 1.0, "triangulate": 2.0, "curve": 3.0, "swap": 4.0}
-        mesh = Mesh(np.zeros((3, 2)), np.array([[0, 1, 2]]), (0, 0, 1, 1))
         return pipeline.AdaptResult(mesh, kind, seconds, 1.0), found
 
     return run
@@ -780,3 +786,59 @@ def test_a_run_leaving_a_long_edge_is_made_again_with_less_lattice(
     assert calls == runs
     assert res.swaps == kept  # the fake's swap count tells which run
     assert res.seconds["swap"] == 4.0 * len(runs)
+
+
+@pytest.mark.parametrize(
+    ("lengths", "gives_up", "options", "runs", "kept"),
+    [
+        # the first abandoned: the second is made, and kept within 1.5
+        ((2.0, 1.2, 1.0), (0,), {}, [-1, 1], 1),
+        # abandoned, then worse than the third: the third kept
+        ((2.0, 1.6, 1.2), (0,), {}, [-1, 1, 2], 2),
+        ((2.0, 1.6, 1.8), (0,), {}, [-1, 1, 2], 1),
+        # the first two abandoned; the last is always finished, and kept
+        ((2.0, 1.6, 3.0), (0, 1, 2), {}, [-1, -2, 2], 2),
+        # the second is the last when the first bounds the lattice already
+        ((2.0, 1.6, 3.0), (0, 2), {"sampling": SamplingOptions(max_sag=0.3)}, [-1, 2], 2),
+        # without retries the only run is finished
+        ((2.0, 1.2, 1.0), (0,), {"retry": False}, [0], 0),
+    ],
+)
+def test_a_run_whose_curved_mesh_is_mostly_long_is_abandoned_unless_last(
+    monkeypatch, lengths, gives_up, options, runs, kept
+):
+    calls: list = []
+    monkeypatch.setattr(pipeline, "_run", _fake_run(list(lengths), calls, gives_up))
+    fld = load_metric_text("name: m\ndomain: {box: [[0, 0], [1, 1]]}\nmetric: {isotropic: 1}\n")
+    res = pipeline.adapt(fld, pipeline.AdaptOptions(**options))
+    assert calls == runs
+    assert res.swaps == kept
+    assert res.seconds["swap"] == 4.0 * sum(1 for c in runs if c >= 0)
+    assert res.seconds["curve"] == 3.0 * len(runs)
+
+
+def test_a_thin_layers_first_run_is_abandoned_after_curving_and_the_toys_is_not():
+    """u47 (a circular layer of 1,000:1 of radius 0.15): its lattice's first run curves a
+    mesh with a third of its edges over 1.5 (measured here to the report's accuracy),
+    and is abandoned before its swap stage; the toy's is finished, as without the
+    verdict (the same mesh)."""
+    from pathlib import Path
+
+    from curvimesh.metric import load_metric
+
+    root = Path(__file__).resolve().parents[1]
+    quiet = lambda _: None  # noqa: E731
+    layer = load_metric(root / "bench" / "robustness" / "u47_circ_layer_1000_r015.yaml")
+    run, found = pipeline._run(layer, pipeline.AdaptOptions(), quiet, abandon=True)
+    assert run.swaps == -1 and found is None and run.seconds["swap"] == 0.0
+    mesh = run.mesh
+    exact = edge_lengths(layer, mesh.points, mesh.edges, mesh.edge_mid)
+    assert np.mean(exact > pipeline.RETRY_ABOVE) > pipeline.ABANDON_SHARE
+    assert pipeline.long_share(layer, mesh) > pipeline.ABANDON_SHARE
+
+    toy = load_metric(root / "metrics" / "toy.yaml")
+    run, _ = pipeline._run(toy, pipeline.AdaptOptions(), quiet, abandon=True)
+    plain, _ = pipeline._run(toy, pipeline.AdaptOptions(), quiet)
+    assert run.swaps == plain.swaps >= 0
+    assert np.array_equal(run.mesh.points, plain.mesh.points)
+    assert np.array_equal(run.mesh.triangles, plain.mesh.triangles)
