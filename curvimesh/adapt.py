@@ -95,8 +95,8 @@ STAGES = (
 RETRY_ABOVE = 1.5
 
 #: A run whose curved mesh (stage 3) has more than this share of its edges longer
-#: than :data:`RETRY_ABOVE` (:func:`long_share`) is abandoned before its swap stage
-#: when another run follows (:func:`adapt`): the clean-up stages mend local defects,
+#: than :data:`RETRY_ABOVE` (:func:`long_share`) has its swap stage put off when
+#: another run follows (:func:`adapt`): the clean-up stages mend local defects,
 #: and so many long edges say that the point cloud itself is wrong. Measured on the
 #: first runs of 83 metrics at seed 0 (the 11 examples, ``bench/robustness`` and 19
 #: thin layers and fronts of 100:1 to 5,000:1) and of the closest ones at seeds 0 –
@@ -470,39 +470,60 @@ def adapt(
     (:data:`curvimesh.sampling.HEX_MAX_SAG`), and keeping it out of such layers alone
     mends what leaving it out everywhere did at 1.16 – 1.18 times the ideal triangle
     count. Like Gmsh's ``Mesh.AlgorithmSwitchOnFailure``, another method where the
-    first fails. A run that another follows is abandoned after its curving when
-    more than :data:`ABANDON_SHARE` of its edges are longer than
-    :data:`RETRY_ABOVE` (its swap stage is not run, it is not kept); the last run
-    is always finished.
+    first fails. The swap stage of a run that another follows is put off when more
+    than :data:`ABANDON_SHARE` of its curved edges are longer than
+    :data:`RETRY_ABOVE`, and made only if no run leaves its edges within it (the
+    longest clean-up stages are those of such runs, which fail); the last run is
+    always finished. A run whose curved mesh is an earlier run's (the sag bound
+    kept the lattice out of no layer) makes no swap stage: its result would be the
+    earlier's, which a tie keeps.
     """
     opt = options or AdaptOptions()
     if not (opt.retry and opt.hexagons and not opt.straight):
         return _run(fld, opt, progress)[0]
     runs = [("", opt), *retries(opt)]
-    kept, longest, seconds = None, np.inf, None
+    done: list[tuple[float, int, AdaptResult]] = []  # (longest edge, run, result)
+    put_off: list[tuple[int, AdaptResult]] = []  # (run, its curved mesh)
+    curves: list[Mesh] = []
+    seconds: dict[str, float] = {}
+
+    def finish(i: int, curved: AdaptResult) -> None:
+        run, found = _finish(fld, runs[i][1], curved, progress)
+        seconds["swap"] += run.seconds["swap"]
+        done.append((_longest(fld, run, found), i, run))
+
     for i, (label, again) in enumerate(runs):
+        longest = min((d[0] for d in done), default=np.inf)
         if i and not longest > RETRY_ABOVE:
             break
         if i:
-            left = "" if kept is None else f"an edge of {longest:.2f} is left: "
+            left = f"an edge of {longest:.2f} is left: " if done else ""
             progress(f"{left}all stages again {label}")
-        last = i == len(runs) - 1
-        run, found = _run(fld, again, progress, abandon=not last)
-        seconds = (
-            dict(run.seconds)
-            if seconds is None
-            else {k: seconds[k] + run.seconds[k] for k in seconds}
-        )
-        area = run.metric_area
-        if run.swaps < 0:  # abandoned after its curving
+        curved = _curved(fld, again, progress)
+        for k, v in curved.seconds.items():
+            seconds[k] = seconds.get(k, 0.0) + v
+        twin = next((j for j, c in enumerate(curves) if _same(c, curved.mesh)), None)
+        curves.append(curved.mesh)
+        if twin is not None:  # the same stages on the same mesh: the same result
+            progress(f"the curved mesh is that of run {twin + 1}: its swap stage is not made")
             continue
-        length = _longest(fld, run, found)
-        if length < longest:
-            kept, longest = run, length
-            if i:
-                progress(f"kept the mesh {label}")
-    assert kept is not None and seconds is not None  # the last run is always finished
-    return AdaptResult(kept.mesh, kept.swaps, seconds, area)
+        share = long_share(fld, curved.mesh)
+        if i < len(runs) - 1 and share > ABANDON_SHARE:
+            progress(
+                f"{share:.1%} of the curved edges are longer than {RETRY_ABOVE}: "
+                "the swap stage is put off"
+            )
+            put_off.append((i, curved))
+            continue
+        finish(i, curved)
+    if not done or min(d[0] for d in done) > RETRY_ABOVE:  # none within 1.5: finish all
+        for i, curved in put_off:
+            progress(f"the swap stage put off: run {i + 1} of {len(runs)}")
+            finish(i, curved)
+    _, i, kept = min(done, key=lambda d: (d[0], d[1]))
+    if i:
+        progress(f"kept the mesh {runs[i][0]}")
+    return AdaptResult(kept.mesh, kept.swaps, seconds, kept.metric_area)
 
 
 def retries(opt: AdaptOptions) -> list[tuple[str, AdaptOptions]]:
@@ -536,14 +557,16 @@ def _longest(fld: MetricField, run: AdaptResult, found: Defects | None) -> float
 
 
 def _run(
-    fld: MetricField, opt: AdaptOptions, progress: Progress, *, abandon: bool = False
+    fld: MetricField, opt: AdaptOptions, progress: Progress
 ) -> tuple[AdaptResult, Defects | None]:
     """The stages of :func:`adapt`, once; the result and the defects of its unit mesh
     (before the fit, which trades lengths for the function's error, when there is one)
-    where the swap stage measured them. With ``abandon``, a curved mesh with more
-    than :data:`ABANDON_SHARE` of its edges longer than :data:`RETRY_ABOVE` ends the
-    run before its swap stage: its result then has the curved mesh, swaps −1 and 0
-    ``swap`` seconds."""
+    where the swap stage measured them."""
+    return _finish(fld, opt, _curved(fld, opt, progress), progress)
+
+
+def _curved(fld: MetricField, opt: AdaptOptions, progress: Progress) -> AdaptResult:
+    """Stages 1 – 3 of a run: the curved mesh, swaps −1 and 0 ``swap`` seconds."""
     seconds: dict[str, float] = {}
     t = time.perf_counter()
     area = check_size(fld, opt.max_vertices)
@@ -559,18 +582,21 @@ def _run(
     p2 = curve(fld, p1, opt)
     seconds["curve"] = time.perf_counter() - t
     progress(f"curve: done ({seconds['curve']:.1f} s)")
-    if abandon:
-        share = long_share(fld, p2)
-        if share > ABANDON_SHARE:
-            progress(
-                f"{share:.1%} of the curved edges are longer than {RETRY_ABOVE}: "
-                "the run is abandoned"
-            )
-            seconds["swap"] = 0.0
-            return AdaptResult(p2, -1, seconds, area), None
+    return AdaptResult(p2, -1, {**seconds, "swap": 0.0}, area)
+
+
+def _same(a: Mesh, b: Mesh) -> bool:
+    """Whether two meshes have the same nodes and triangles, bit for bit."""
+    return np.array_equal(a.points, b.points) and np.array_equal(a.triangles, b.triangles)
+
+
+def _finish(
+    fld: MetricField, opt: AdaptOptions, curved: AdaptResult, progress: Progress
+) -> tuple[AdaptResult, Defects | None]:
+    """Stage 4 of a run on its curved mesh (:func:`_curved`); the result and the
+    defects as :func:`_run` gives them."""
     t = time.perf_counter()
-    res = swap(fld, p2, opt)
-    seconds["swap"] = time.perf_counter() - t
+    res = swap(fld, curved.mesh, opt)
+    seconds = {**curved.seconds, "swap": time.perf_counter() - t}
     progress(f"swap: {res.counts()} ({seconds['swap']:.1f} s)")
-    mesh, swaps = res.mesh, res.swaps
-    return AdaptResult(mesh, swaps, seconds, area), res.unit_defects
+    return AdaptResult(res.mesh, res.swaps, seconds, curved.metric_area), res.unit_defects

@@ -740,26 +740,42 @@ def _kind(opt) -> int:
     return 1 if opt.sampling.max_sag == HEX_MAX_SAG else 0
 
 
-def _fake_run(longest: list[float], calls: list, gives_up: tuple[int, ...] = ()):
-    """A stand-in for one run of the stages: records the run's kind (:func:`_kind`) and
-    returns a result whose defects have the longest edge ``longest[kind]``, its swap
-    count the kind; a run of a kind in ``gives_up`` is abandoned after its curving
-    when it may be (as :func:`curvimesh.adapt._run` does then: swaps −1, no swap time),
-    recorded as −1 − kind."""
+def _fake_stages(
+    monkeypatch, longest: list[float], gives_up: tuple[int, ...] = (), twins: tuple = ()
+) -> list[str]:
+    """Stand-ins for the stages of a run, by its kind k (:func:`_kind`): stages 1 – 3
+    (``_curved``, recorded as "ck") give a mesh of its own to each kind (one to the
+    kinds in ``twins``), more than ABANDON_SHARE of it long for the kinds in
+    ``gives_up``; stage 4 (``_finish``, "fk") a result whose defects have the longest
+    edge ``longest[k]``, its swap count k. Returns the record."""
+    calls: list[str] = []
+    seconds = {"sample": 1.0, "triangulate": 2.0, "curve": 3.0, "swap": 0.0}
 
-    def run(fld, opt, progress, *, abandon=False):
+    def curved(fld, opt, progress):
         kind = _kind(opt)
-        mesh = Mesh(np.zeros((3, 2)), np.array([[0, 1, 2]]), (0, 0, 1, 1))
-        if abandon and kind in gives_up:
-            calls.append(-1 - kind)
-            seconds = {"sample": 1.0, "triangulate": 2.0, "curve": 3.0, "swap": 0.0}
-            return pipeline.AdaptResult(mesh, -1, seconds, 1.0), None
-        calls.append(kind)
-        found = pipeline.Defects(0, 0, 0.7, longest[kind], 0.5)
-        seconds = {"sample": 1.0, "triangulate": 2.0, "curve": 3.0, "swap": 4.0}
-        return pipeline.AdaptResult(mesh, kind, seconds, 1.0), found
+        calls.append(f"c{kind}")
+        k = twins[0] if kind in twins else kind
+        mesh = Mesh(np.array([[k, 0.0], [k + 1.0, 0.0], [k, 1.0]]), np.array([[0, 1, 2]]), None)
+        return pipeline.AdaptResult(mesh, -1, dict(seconds), 1.0)
 
-    return run
+    def share(fld, mesh):
+        return 1.0 if int(mesh.points[0, 0]) in gives_up else 0.0
+
+    def finish(fld, opt, curved, progress):
+        kind = _kind(opt)
+        calls.append(f"f{kind}")
+        found = pipeline.Defects(0, 0, 0.7, longest[kind], 0.5)
+        return pipeline.AdaptResult(curved.mesh, kind, {**seconds, "swap": 4.0}, 1.0), found
+
+    monkeypatch.setattr(pipeline, "_curved", curved)
+    monkeypatch.setattr(pipeline, "long_share", share)
+    monkeypatch.setattr(pipeline, "_finish", finish)
+    return calls
+
+
+def _adapt(**options):
+    fld = load_metric_text("name: m\ndomain: {box: [[0, 0], [1, 1]]}\nmetric: {isotropic: 1}\n")
+    return pipeline.adapt(fld, pipeline.AdaptOptions(**options))
 
 
 @pytest.mark.parametrize(
@@ -779,66 +795,82 @@ def _fake_run(longest: list[float], calls: list, gives_up: tuple[int, ...] = ())
 def test_a_run_leaving_a_long_edge_is_made_again_with_less_lattice(
     monkeypatch, lengths, options, runs, kept
 ):
-    calls: list = []
-    monkeypatch.setattr(pipeline, "_run", _fake_run(list(lengths), calls))
-    fld = load_metric_text("name: m\ndomain: {box: [[0, 0], [1, 1]]}\nmetric: {isotropic: 1}\n")
-    res = pipeline.adapt(fld, pipeline.AdaptOptions(**options))
-    assert calls == runs
+    calls = _fake_stages(monkeypatch, list(lengths))
+    res = _adapt(**options)
+    assert calls == [f"{s}{k}" for k in runs for s in "cf"]
     assert res.swaps == kept  # the fake's swap count tells which run
     assert res.seconds["swap"] == 4.0 * len(runs)
-
-
-@pytest.mark.parametrize(
-    ("lengths", "gives_up", "options", "runs", "kept"),
-    [
-        # the first abandoned: the second is made, and kept within 1.5
-        ((2.0, 1.2, 1.0), (0,), {}, [-1, 1], 1),
-        # abandoned, then worse than the third: the third kept
-        ((2.0, 1.6, 1.2), (0,), {}, [-1, 1, 2], 2),
-        ((2.0, 1.6, 1.8), (0,), {}, [-1, 1, 2], 1),
-        # the first two abandoned; the last is always finished, and kept
-        ((2.0, 1.6, 3.0), (0, 1, 2), {}, [-1, -2, 2], 2),
-        # the second is the last when the first bounds the lattice already
-        ((2.0, 1.6, 3.0), (0, 2), {"sampling": SamplingOptions(max_sag=0.3)}, [-1, 2], 2),
-        # without retries the only run is finished
-        ((2.0, 1.2, 1.0), (0,), {"retry": False}, [0], 0),
-    ],
-)
-def test_a_run_whose_curved_mesh_is_mostly_long_is_abandoned_unless_last(
-    monkeypatch, lengths, gives_up, options, runs, kept
-):
-    calls: list = []
-    monkeypatch.setattr(pipeline, "_run", _fake_run(list(lengths), calls, gives_up))
-    fld = load_metric_text("name: m\ndomain: {box: [[0, 0], [1, 1]]}\nmetric: {isotropic: 1}\n")
-    res = pipeline.adapt(fld, pipeline.AdaptOptions(**options))
-    assert calls == runs
-    assert res.swaps == kept
-    assert res.seconds["swap"] == 4.0 * sum(1 for c in runs if c >= 0)
     assert res.seconds["curve"] == 3.0 * len(runs)
 
 
-def test_a_thin_layers_first_run_is_abandoned_after_curving_and_the_toys_is_not():
+@pytest.mark.parametrize(
+    ("lengths", "gives_up", "options", "calls", "kept"),
+    [
+        # the first put off: the second is made, and kept within 1.5
+        ((2.0, 1.2, 1.0), (0,), {}, "c0 c1 f1", 1),
+        ((2.0, 1.6, 1.2), (0,), {}, "c0 c1 f1 c2 f2", 2),
+        # no run within 1.5: the first is finished too, and the best kept
+        ((2.0, 1.6, 1.8), (0,), {}, "c0 c1 f1 c2 f2 f0", 1),
+        ((1.6, 1.8, 3.0), (0, 1, 2), {}, "c0 c1 c2 f2 f0 f1", 0),  # the last always made
+        ((2.0, 1.6, 3.0), (0, 2), {"sampling": SamplingOptions(max_sag=0.3)}, "c0 c2 f2 f0", 0),
+        # without retries the only run is finished
+        ((2.0, 1.2, 1.0), (0,), {"retry": False}, "c0 f0", 0),
+    ],
+)
+def test_a_run_whose_curved_mesh_is_mostly_long_puts_off_its_swap_stage(
+    monkeypatch, lengths, gives_up, options, calls, kept
+):
+    record = _fake_stages(monkeypatch, list(lengths), gives_up)
+    res = _adapt(**options)
+    assert record == calls.split()
+    assert res.swaps == kept
+    assert res.seconds["swap"] == 4.0 * calls.count("f")
+    assert res.seconds["curve"] == 3.0 * calls.count("c")
+
+
+@pytest.mark.parametrize(
+    ("lengths", "gives_up", "calls", "kept"),
+    [
+        ((2.0, 1.0, 1.2), (), "c0 f0 c1 c2 f2", 2),  # run 1 is run 0: not made again
+        ((2.0, 1.0, 1.2), (0,), "c0 c1 c2 f2", 2),  # put off, and its twin
+        ((2.0, 1.0, 3.0), (0,), "c0 c1 c2 f2 f0", 0),  # finished once for both
+    ],
+)
+def test_a_run_whose_curved_mesh_is_an_earlier_runs_makes_no_swap_stage(
+    monkeypatch, lengths, gives_up, calls, kept
+):
+    record = _fake_stages(monkeypatch, list(lengths), gives_up, twins=(0, 1))
+    res = _adapt()
+    assert record == calls.split()
+    assert res.swaps == kept
+
+
+def test_a_thin_layers_first_run_is_put_off_and_finishing_a_curved_mesh_is_the_run():
     """u47 (a circular layer of 1,000:1 of radius 0.15): its lattice's first run curves a
-    mesh with a third of its edges over 1.5 (measured here to the report's accuracy),
-    and is abandoned before its swap stage; the toy's is finished, as without the
-    verdict (the same mesh)."""
+    mesh with a third of its edges over 1.5 (measured here to the report's accuracy):
+    adapt puts off its swap stage. The swap stage made on a curved mesh later gives
+    what the run gives at once (the toy)."""
     from pathlib import Path
 
     from curvimesh.metric import load_metric
 
     root = Path(__file__).resolve().parents[1]
     quiet = lambda _: None  # noqa: E731
+    opt = pipeline.AdaptOptions()
     layer = load_metric(root / "bench" / "robustness" / "u47_circ_layer_1000_r015.yaml")
-    run, found = pipeline._run(layer, pipeline.AdaptOptions(), quiet, abandon=True)
-    assert run.swaps == -1 and found is None and run.seconds["swap"] == 0.0
-    mesh = run.mesh
+    curved = pipeline._curved(layer, opt, quiet)
+    assert curved.swaps == -1 and curved.seconds["swap"] == 0.0
+    mesh = curved.mesh
     exact = edge_lengths(layer, mesh.points, mesh.edges, mesh.edge_mid)
     assert np.mean(exact > pipeline.RETRY_ABOVE) > pipeline.ABANDON_SHARE
     assert pipeline.long_share(layer, mesh) > pipeline.ABANDON_SHARE
 
     toy = load_metric(root / "metrics" / "toy.yaml")
-    run, _ = pipeline._run(toy, pipeline.AdaptOptions(), quiet, abandon=True)
-    plain, _ = pipeline._run(toy, pipeline.AdaptOptions(), quiet)
-    assert run.swaps == plain.swaps >= 0
-    assert np.array_equal(run.mesh.points, plain.mesh.points)
-    assert np.array_equal(run.mesh.triangles, plain.mesh.triangles)
+    curved = pipeline._curved(toy, opt, quiet)
+    assert pipeline.long_share(toy, curved.mesh) < pipeline.ABANDON_SHARE  # 1 % over 1.5
+    other = pipeline._curved(toy, opt, quiet)  # its mesh and memo tables used since
+    late, late_found = pipeline._finish(toy, opt, curved, quiet)
+    plain, plain_found = pipeline._run(toy, opt, quiet)
+    assert pipeline._same(curved.mesh, other.mesh)
+    assert late.swaps == plain.swaps >= 0 and late_found == plain_found
+    assert pipeline._same(late.mesh, plain.mesh)
