@@ -105,7 +105,7 @@ RETRY_ABOVE = 1.5
 #: had 8.4 – 9.6 % and ended with edges of 1.46 – 8.3 (its later runs mend most), and
 #: the thin circular and elliptic layers that fail had 12 – 37 % and ended with
 #: edges of 4.2 – 34 after swap stages of 14 – 114 s.
-ABANDON_SHARE = 0.10
+PUT_OFF_SHARE = 0.10
 
 #: The shortest-parabola searches the vertex shifts of one swap stage may make in all,
 #: per vertex of the mesh (:func:`curvimesh.shift.shift_vertices`, ``max_searches``).
@@ -471,7 +471,7 @@ def adapt(
     mends what leaving it out everywhere did at 1.16 – 1.18 times the ideal triangle
     count. Like Gmsh's ``Mesh.AlgorithmSwitchOnFailure``, another method where the
     first fails. The swap stage of a run that another follows is put off when more
-    than :data:`ABANDON_SHARE` of its curved edges are longer than
+    than :data:`PUT_OFF_SHARE` of its curved edges are longer than
     :data:`RETRY_ABOVE`, and made only if no run leaves its edges within it (the
     longest clean-up stages are those of such runs, which fail); the last run is
     always finished. A run whose curved mesh is an earlier run's (the sag bound
@@ -508,7 +508,7 @@ def adapt(
             progress(f"the curved mesh is that of run {twin + 1}: its swap stage is not made")
             continue
         share = long_share(fld, curved.mesh)
-        if i < len(runs) - 1 and share > ABANDON_SHARE:
+        if i < len(runs) - 1 and share > PUT_OFF_SHARE:
             progress(
                 f"{share:.1%} of the curved edges are longer than {RETRY_ABOVE}: "
                 "the swap stage is put off"

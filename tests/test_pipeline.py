@@ -745,7 +745,7 @@ def _fake_stages(
 ) -> list[str]:
     """Stand-ins for the stages of a run, by its kind k (:func:`_kind`): stages 1 – 3
     (``_curved``, recorded as "ck") give a mesh of its own to each kind (one to the
-    kinds in ``twins``), more than ABANDON_SHARE of it long for the kinds in
+    kinds in ``twins``), more than PUT_OFF_SHARE of it long for the kinds in
     ``gives_up``; stage 4 (``_finish``, "fk") a result whose defects have the longest
     edge ``longest[k]``, its swap count k. Returns the record."""
     calls: list[str] = []
@@ -862,12 +862,12 @@ def test_a_thin_layers_first_run_is_put_off_and_finishing_a_curved_mesh_is_the_r
     assert curved.swaps == -1 and curved.seconds["swap"] == 0.0
     mesh = curved.mesh
     exact = edge_lengths(layer, mesh.points, mesh.edges, mesh.edge_mid)
-    assert np.mean(exact > pipeline.RETRY_ABOVE) > pipeline.ABANDON_SHARE
-    assert pipeline.long_share(layer, mesh) > pipeline.ABANDON_SHARE
+    assert np.mean(exact > pipeline.RETRY_ABOVE) > pipeline.PUT_OFF_SHARE
+    assert pipeline.long_share(layer, mesh) > pipeline.PUT_OFF_SHARE
 
     toy = load_metric(root / "metrics" / "toy.yaml")
     curved = pipeline._curved(toy, opt, quiet)
-    assert pipeline.long_share(toy, curved.mesh) < pipeline.ABANDON_SHARE  # 1 % over 1.5
+    assert pipeline.long_share(toy, curved.mesh) < pipeline.PUT_OFF_SHARE  # 1 % over 1.5
     other = pipeline._curved(toy, opt, quiet)  # its mesh and memo tables used since
     late, late_found = pipeline._finish(toy, opt, curved, quiet)
     plain, plain_found = pipeline._run(toy, opt, quiet)
