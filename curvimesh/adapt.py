@@ -9,6 +9,7 @@ pipes, or all at once in :func:`adapt`, with the same result byte for byte
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -502,7 +503,9 @@ def adapt(
         curved = _curved(fld, again, progress)
         for k, v in curved.seconds.items():
             seconds[k] = seconds.get(k, 0.0) + v
-        twin = next((j for j, c in enumerate(curves) if _same(c, curved.mesh)), None)
+        twin = next(
+            (j for j, c in enumerate(curves) if _same(c, curved.mesh, runs[j][1], again)), None
+        )
         curves.append(curved.mesh)
         if twin is not None:  # the same stages on the same mesh: the same result
             progress(f"the curved mesh is that of run {twin + 1}: its swap stage is not made")
@@ -585,9 +588,19 @@ def _curved(fld: MetricField, opt: AdaptOptions, progress: Progress) -> AdaptRes
     return AdaptResult(p2, -1, {**seconds, "swap": 0.0}, area)
 
 
-def _same(a: Mesh, b: Mesh) -> bool:
-    """Whether two meshes have the same nodes and triangles, bit for bit."""
-    return np.array_equal(a.points, b.points) and np.array_equal(a.triangles, b.triangles)
+def _same(a: Mesh, b: Mesh, opt_a: AdaptOptions, opt_b: AdaptOptions) -> bool:
+    """Whether two curved meshes have the same nodes and triangles, bit for bit, and
+    their runs the same options but those of the sampling's lattice (``hexagons``,
+    ``sampling.max_sag``, which the swap stage does not read): the same swap stage."""
+
+    def stage4(o: AdaptOptions) -> AdaptOptions:
+        return replace(o, hexagons=True, sampling=replace(o.sampling, max_sag=math.inf))
+
+    return (
+        stage4(opt_a) == stage4(opt_b)
+        and np.array_equal(a.points, b.points)
+        and np.array_equal(a.triangles, b.triangles)
+    )
 
 
 def _finish(

@@ -871,6 +871,7 @@ def test_a_thin_layers_first_run_is_put_off_and_finishing_a_curved_mesh_is_the_r
     other = pipeline._curved(toy, opt, quiet)  # its mesh and memo tables used since
     late, late_found = pipeline._finish(toy, opt, curved, quiet)
     plain, plain_found = pipeline._run(toy, opt, quiet)
-    assert pipeline._same(curved.mesh, other.mesh)
+    assert pipeline._same(curved.mesh, other.mesh, opt, opt)
+    assert not pipeline._same(curved.mesh, other.mesh, opt, pipeline.AdaptOptions(shift=False))
     assert late.swaps == plain.swaps >= 0 and late_found == plain_found
-    assert pipeline._same(late.mesh, plain.mesh)
+    assert pipeline._same(late.mesh, plain.mesh, opt, opt)
