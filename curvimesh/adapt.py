@@ -27,7 +27,7 @@ from curvimesh.insert import insert_points
 from curvimesh.intrinsic import intrinsic_flips
 from curvimesh.mesh import Mesh
 from curvimesh.metric import UNIT_TRIANGLE_AREA, MetricField, density_integral
-from curvimesh.quality import edge_lengths_fast, fixed_rule_measures
+from curvimesh.quality import fixed_rule_lengths, fixed_rule_measures
 from curvimesh.recurve import recurve
 from curvimesh.remove import remove_vertices
 from curvimesh.sampling import HEX_MAX_SAG, SamplingOptions, sample_points
@@ -544,13 +544,12 @@ def retries(opt: AdaptOptions) -> list[tuple[str, AdaptOptions]]:
 
 def long_share(fld: MetricField, mesh: Mesh) -> float:
     """The share of a P2 mesh's edges longer than :data:`RETRY_ABOVE` (the optimisation
-    loops' rule of two segments, :func:`curvimesh.quality.edge_lengths_fast`, which
+    loops' rule of two segments, :func:`curvimesh.quality.fixed_rule_lengths`, which
     the swap stage measures the same edges with first)."""
-    pts, e = mesh.points, mesh.edges
-    if len(e) == 0:
+    if len(mesh.edges) == 0:
         return 0.0
-    length = edge_lengths_fast(fld, pts[e[:, 0]], pts[e[:, 1]], pts[mesh.edge_mid])
-    return float(np.count_nonzero(length > RETRY_ABOVE)) / len(e)
+    length = fixed_rule_lengths(fld, mesh)
+    return float(np.count_nonzero(length > RETRY_ABOVE)) / len(length)
 
 
 def _longest(fld: MetricField, run: AdaptResult, found: Defects | None) -> float:

@@ -232,14 +232,20 @@ def _metric_areas(field: MetricField, rows: NDArray, order: int) -> NDArray:
 REMEASURE_MARGIN = 0.05
 
 
-def fixed_rule_measures(field: MetricField, mesh: Mesh) -> tuple[NDArray, NDArray]:
-    """Edge lengths ``(E,)`` and qualities (4) ``(m,)`` of a P2 ``mesh`` by the loops' fixed
-    rules (:func:`edge_lengths_fast`, :func:`metric_areas`): what the clean-up stages
-    judge a whole mesh by (:func:`curvimesh.adapt.defects`, :mod:`curvimesh.bend`)."""
+def fixed_rule_lengths(field: MetricField, mesh: Mesh) -> NDArray:
+    """Edge lengths ``(E,)`` of a P2 ``mesh`` by the loops' rule of two segments
+    (:func:`edge_lengths_fast`, remembered)."""
     pts = np.asarray(mesh.points)
     e = mesh.edges
-    length = edge_lengths_fast(field, pts[e[:, 0]], pts[e[:, 1]], pts[mesh.edge_mid])
-    area = metric_areas(field, pts[np.asarray(mesh.triangles)])
+    return edge_lengths_fast(field, pts[e[:, 0]], pts[e[:, 1]], pts[mesh.edge_mid])
+
+
+def fixed_rule_measures(field: MetricField, mesh: Mesh) -> tuple[NDArray, NDArray]:
+    """Edge lengths ``(E,)`` and qualities (4) ``(m,)`` of a P2 ``mesh`` by the loops' fixed
+    rules (:func:`fixed_rule_lengths`, :func:`metric_areas`): what the clean-up stages
+    judge a whole mesh by (:func:`curvimesh.adapt.defects`, :mod:`curvimesh.bend`)."""
+    length = fixed_rule_lengths(field, mesh)
+    area = metric_areas(field, np.asarray(mesh.points)[np.asarray(mesh.triangles)])
     return length, quality_from(area, length[mesh.tri_edges])
 
 
