@@ -108,6 +108,11 @@ RETRY_ABOVE = 1.5
 #: edges of 4.2 – 34 after swap stages of 14 – 114 s.
 PUT_OFF_SHARE = 0.10
 
+#: Runs with other sampling seeds made when no run of the given seed leaves its edges
+#: within :data:`RETRY_ABOVE` (:func:`adapt`), and the stride between their seeds.
+SEED_RETRIES = 3
+SEED_STRIDE = 1000
+
 #: The shortest-parabola searches the vertex shifts of one swap stage may make in all,
 #: per vertex of the mesh (:func:`curvimesh.shift.shift_vertices`, ``max_searches``).
 #: Measured on the examples (seeds 0 – 4) and on the robustness metrics that search
@@ -482,23 +487,28 @@ def adapt(
     opt = options or AdaptOptions()
     if not (opt.retry and opt.hexagons and not opt.straight):
         return _run(fld, opt, progress)[0]
-    runs = [("", opt), *retries(opt)]
+    runs: list[tuple[str, AdaptOptions]] = []
     done: list[tuple[float, int, AdaptResult]] = []  # (longest edge, run, result)
     put_off: list[tuple[int, AdaptResult]] = []  # (run, its curved mesh)
     curves: list[Mesh] = []
     seconds: dict[str, float] = {}
+
+    def longest() -> float:
+        return min((d[0] for d in done), default=np.inf)
 
     def finish(i: int, curved: AdaptResult) -> None:
         run, found = _finish(fld, runs[i][1], curved, progress)
         seconds["swap"] += run.seconds["swap"]
         done.append((_longest(fld, run, found), i, run))
 
-    for i, (label, again) in enumerate(runs):
-        longest = min((d[0] for d in done), default=np.inf)
-        if i and not longest > RETRY_ABOVE:
-            break
+    def attempt(label: str, again: AdaptOptions, long_curved: str) -> None:
+        """One run: its curved mesh, then, unless it is an earlier run's, its swap
+        stage, put off (``long_curved`` "put off") or the run dropped ("drop") when too
+        many of its curved edges are long (or neither: "finish")."""
+        i = len(runs)
+        runs.append((label, again))
         if i:
-            left = f"an edge of {longest:.2f} is left: " if done else ""
+            left = f"an edge of {longest():.2f} is left: " if done else ""
             progress(f"{left}all stages again {label}")
         curved = _curved(fld, again, progress)
         for k, v in curved.seconds.items():
@@ -509,17 +519,30 @@ def adapt(
         curves.append(curved.mesh)
         if twin is not None:  # the same stages on the same mesh: the same result
             progress(f"the curved mesh is that of run {twin + 1}: its swap stage is not made")
-            continue
+            return
         share = long_share(fld, curved.mesh)
-        if i < len(runs) - 1 and share > PUT_OFF_SHARE:
-            progress(
-                f"{share:.1%} of the curved edges are longer than {RETRY_ABOVE}: "
-                "the swap stage is put off"
-            )
-            put_off.append((i, curved))
-            continue
+        if long_curved != "finish" and share > PUT_OFF_SHARE:
+            what = "the swap stage is put off" if long_curved == "put off" else "the run is dropped"
+            progress(f"{share:.1%} of the curved edges are longer than {RETRY_ABOVE}: {what}")
+            if long_curved == "put off":
+                put_off.append((i, curved))
+            return
         finish(i, curved)
-    if not done or min(d[0] for d in done) > RETRY_ABOVE:  # none within 1.5: finish all
+
+    own = [("", opt), *retries(opt)]
+    for k, (label, again) in enumerate(own):
+        if k and not longest() > RETRY_ABOVE:
+            break
+        attempt(label, again, "put off" if k < len(own) - 1 else "finish")
+    for seeded in _seed_retries(opt):  # the runs of the given seed fall back on
+        for label, again in [("", seeded), *retries(seeded)]:
+            if not longest() > RETRY_ABOVE:
+                break
+            label = f"with sampling seed {seeded.seed}" + (
+                f" and {label.removeprefix('with ')}" if label else ""
+            )
+            attempt(label, again, "drop")
+    if longest() > RETRY_ABOVE:  # none within 1.5: finish all
         for i, curved in put_off:
             progress(f"the swap stage put off: run {i + 1} of {len(runs)}")
             finish(i, curved)
@@ -540,6 +563,13 @@ def retries(opt: AdaptOptions) -> list[tuple[str, AdaptOptions]]:
         runs.append(("with the hexagonal lattice kept out of thin curved layers", bounded))
     runs.append(("without the hexagonal lattice", replace(opt, hexagons=False)))
     return runs
+
+
+def _seed_retries(opt: AdaptOptions) -> list[AdaptOptions]:
+    """The options of the runs with other sampling seeds that :func:`adapt` makes when
+    no run of ``opt``'s seed leaves its edges within :data:`RETRY_ABOVE`: seeds
+    ``opt.seed`` + k :data:`SEED_STRIDE`, k = 1 … :data:`SEED_RETRIES`."""
+    return [replace(opt, seed=opt.seed + k * SEED_STRIDE) for k in range(1, SEED_RETRIES + 1)]
 
 
 def long_share(fld: MetricField, mesh: Mesh) -> float:

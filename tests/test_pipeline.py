@@ -741,31 +741,47 @@ def _kind(opt) -> int:
 
 
 def _fake_stages(
-    monkeypatch, longest: list[float], gives_up: tuple[int, ...] = (), twins: tuple = ()
+    monkeypatch,
+    longest: list[float],
+    gives_up: tuple[int, ...] = (),
+    twins: tuple = (),
+    seeded: dict | None = None,
 ) -> list[str]:
     """Stand-ins for the stages of a run, by its kind k (:func:`_kind`): stages 1 – 3
     (``_curved``, recorded as "ck") give a mesh of its own to each kind (one to the
     kinds in ``twins``), more than PUT_OFF_SHARE of it long for the kinds in
     ``gives_up``; stage 4 (``_finish``, "fk") a result whose defects have the longest
-    edge ``longest[k]``, its swap count k. Returns the record."""
+    edge ``longest[k]``, its swap count k. A run with the j-th other sampling seed
+    (seed j SEED_STRIDE) is recorded as "cj:k" and "fj:k", its swap count 10 j + k: it
+    gives up but where ``seeded[j, k]`` gives its longest edge. Returns the record."""
     calls: list[str] = []
     seconds = {"sample": 1.0, "triangulate": 2.0, "curve": 3.0, "swap": 0.0}
+    seeded = seeded or {}
+
+    def name(opt) -> tuple[str, int]:
+        j, kind = opt.seed // pipeline.SEED_STRIDE, _kind(opt)
+        return (f"{j}:{kind}" if j else f"{kind}"), 10 * j + kind
 
     def curved(fld, opt, progress):
-        kind = _kind(opt)
-        calls.append(f"c{kind}")
-        k = twins[0] if kind in twins else kind
+        label, code = name(opt)
+        calls.append(f"c{label}")
+        kind = code % 10
+        k = code - kind + (twins[0] if kind in twins else kind)
         mesh = Mesh(np.array([[k, 0.0], [k + 1.0, 0.0], [k, 1.0]]), np.array([[0, 1, 2]]), None)
         return pipeline.AdaptResult(mesh, -1, dict(seconds), 1.0)
 
     def share(fld, mesh):
-        return 1.0 if int(mesh.points[0, 0]) in gives_up else 0.0
+        code = int(mesh.points[0, 0])
+        if code >= 10:
+            return 0.0 if (code // 10, code % 10) in seeded else 1.0
+        return 1.0 if code in gives_up else 0.0
 
     def finish(fld, opt, curved, progress):
-        kind = _kind(opt)
-        calls.append(f"f{kind}")
-        found = pipeline.Defects(0, 0, 0.7, longest[kind], 0.5)
-        return pipeline.AdaptResult(curved.mesh, kind, {**seconds, "swap": 4.0}, 1.0), found
+        label, code = name(opt)
+        calls.append(f"f{label}")
+        top = longest[code] if code < 10 else seeded[code // 10, code % 10]
+        found = pipeline.Defects(0, 0, 0.7, top, 0.5)
+        return pipeline.AdaptResult(curved.mesh, code, {**seconds, "swap": 4.0}, 1.0), found
 
     monkeypatch.setattr(pipeline, "_curved", curved)
     monkeypatch.setattr(pipeline, "long_share", share)
@@ -778,29 +794,35 @@ def _adapt(**options):
     return pipeline.adapt(fld, pipeline.AdaptOptions(**options))
 
 
+#: The curved stages of the runs with the three other sampling seeds, each of the three
+#: kinds (:func:`_fake_stages`'s names), all dropped.
+SEED_RUNS = [f"c{j}:{k}" for j in (1, 2, 3) for k in (0, 1, 2)]
+
+
 @pytest.mark.parametrize(
-    ("lengths", "options", "runs", "kept"),
+    ("lengths", "options", "runs", "kept", "seeds"),
     [
-        ((1.5, 1.0, 1.0), {}, [0], 0),  # within 1.5: no second run
-        ((2.0, 1.2, 1.0), {}, [0, 1], 1),  # the second within 1.5: kept, no third
-        ((2.0, 1.6, 1.2), {}, [0, 1, 2], 2),  # the third is the best: kept
-        ((2.0, 1.6, 1.8), {}, [0, 1, 2], 1),  # the second is
-        ((2.0, 2.5, 3.0), {}, [0, 1, 2], 0),  # both worse: the first kept
-        ((2.0, 2.0, 2.0), {}, [0, 1, 2], 0),  # ties: the first
-        ((2.0, 1.2, 1.0), {"retry": False}, [0], 0),
-        ((2.0, 1.2, 1.0), {"hexagons": False}, [2], 2),  # no lattice to leave out
-        ((2.0, 1.6, 1.2), {"sampling": SamplingOptions(max_sag=0.3)}, [0, 2], 2),  # bounded
+        ((1.5, 1.0, 1.0), {}, [0], 0, False),  # within 1.5: no second run
+        ((2.0, 1.2, 1.0), {}, [0, 1], 1, False),  # the second within 1.5: kept, no third
+        ((2.0, 1.6, 1.2), {}, [0, 1, 2], 2, False),  # the third is the best: kept
+        ((2.0, 1.6, 1.8), {}, [0, 1, 2], 1, True),  # the second is (after other seeds)
+        ((2.0, 2.5, 3.0), {}, [0, 1, 2], 0, True),  # both worse: the first kept
+        ((2.0, 2.0, 2.0), {}, [0, 1, 2], 0, True),  # ties: the first
+        ((2.0, 1.2, 1.0), {"retry": False}, [0], 0, False),
+        ((2.0, 1.2, 1.0), {"hexagons": False}, [2], 2, False),  # no lattice to leave out
+        ((2.0, 1.6, 1.2), {"sampling": SamplingOptions(max_sag=0.3)}, [0, 2], 2, False),
     ],
 )
 def test_a_run_leaving_a_long_edge_is_made_again_with_less_lattice(
-    monkeypatch, lengths, options, runs, kept
+    monkeypatch, lengths, options, runs, kept, seeds
 ):
     calls = _fake_stages(monkeypatch, list(lengths))
     res = _adapt(**options)
-    assert calls == [f"{s}{k}" for k in runs for s in "cf"]
+    dropped = SEED_RUNS if seeds else []
+    assert calls == [f"{s}{k}" for k in runs for s in "cf"] + dropped
     assert res.swaps == kept  # the fake's swap count tells which run
     assert res.seconds["swap"] == 4.0 * len(runs)
-    assert res.seconds["curve"] == 3.0 * len(runs)
+    assert res.seconds["curve"] == 3.0 * (len(runs) + len(dropped))
 
 
 @pytest.mark.parametrize(
@@ -810,9 +832,15 @@ def test_a_run_leaving_a_long_edge_is_made_again_with_less_lattice(
         ((2.0, 1.2, 1.0), (0,), {}, "c0 c1 f1", 1),
         ((2.0, 1.6, 1.2), (0,), {}, "c0 c1 f1 c2 f2", 2),
         # no run within 1.5: the first is finished too, and the best kept
-        ((2.0, 1.6, 1.8), (0,), {}, "c0 c1 f1 c2 f2 f0", 1),
-        ((1.6, 1.8, 3.0), (0, 1, 2), {}, "c0 c1 c2 f2 f0 f1", 0),  # the last always made
-        ((2.0, 1.6, 3.0), (0, 2), {"sampling": SamplingOptions(max_sag=0.3)}, "c0 c2 f2 f0", 0),
+        ((2.0, 1.6, 1.8), (0,), {}, "c0 c1 f1 c2 f2 {seeds} f0", 1),
+        ((1.6, 1.8, 3.0), (0, 1, 2), {}, "c0 c1 c2 f2 {seeds} f0 f1", 0),  # the last always made
+        (
+            (2.0, 1.6, 3.0),
+            (0, 2),
+            {"sampling": SamplingOptions(max_sag=0.3)},
+            "c0 c2 f2 c1:0 c1:2 c2:0 c2:2 c3:0 c3:2 f0",  # bounded: no kind 1
+            0,
+        ),
         # without retries the only run is finished
         ((2.0, 1.2, 1.0), (0,), {"retry": False}, "c0 f0", 0),
     ],
@@ -822,6 +850,7 @@ def test_a_run_whose_curved_mesh_is_mostly_long_puts_off_its_swap_stage(
 ):
     record = _fake_stages(monkeypatch, list(lengths), gives_up)
     res = _adapt(**options)
+    calls = calls.format(seeds=" ".join(SEED_RUNS))
     assert record == calls.split()
     assert res.swaps == kept
     assert res.seconds["swap"] == 4.0 * calls.count("f")
@@ -833,7 +862,7 @@ def test_a_run_whose_curved_mesh_is_mostly_long_puts_off_its_swap_stage(
     [
         ((2.0, 1.0, 1.2), (), "c0 f0 c1 c2 f2", 2),  # run 1 is run 0: not made again
         ((2.0, 1.0, 1.2), (0,), "c0 c1 c2 f2", 2),  # put off, and its twin
-        ((2.0, 1.0, 3.0), (0,), "c0 c1 c2 f2 f0", 0),  # finished once for both
+        ((2.0, 1.0, 3.0), (0,), "c0 c1 c2 f2 {seeds} f0", 0),  # finished once for both
     ],
 )
 def test_a_run_whose_curved_mesh_is_an_earlier_runs_makes_no_swap_stage(
@@ -841,8 +870,38 @@ def test_a_run_whose_curved_mesh_is_an_earlier_runs_makes_no_swap_stage(
 ):
     record = _fake_stages(monkeypatch, list(lengths), gives_up, twins=(0, 1))
     res = _adapt()
+    assert record == calls.format(seeds=" ".join(SEED_RUNS)).split()
+    assert res.swaps == kept
+
+
+@pytest.mark.parametrize(
+    ("gives_up", "seeded", "calls", "kept"),
+    [
+        # the second seed's lattice kept out of thin layers ends within 1.5: kept, the end
+        ((), {(1, 1): 1.2}, "c0 f0 c1 f1 c2 f2 c1:0 c1:1 f1:1", 11),
+        ((), {(2, 0): 1.45}, "c0 f0 c1 f1 c2 f2 c1:0 c1:1 c1:2 c2:0 f2:0", 20),
+        # a run put off is not finished when a seed's run ends within 1.5
+        ((0,), {(1, 2): 1.3}, "c0 c1 f1 c2 f2 c1:0 c1:1 c1:2 f1:2", 12),
+        # a seed's run finished but still over 1.5: the others go on, the best is kept
+        ((), {(1, 0): 1.7}, "c0 f0 c1 f1 c2 f2 c1:0 f1:0 c1:1 c1:2 " + " ".join(SEED_RUNS[3:]), 1),
+        ((), {(3, 2): 1.55}, "c0 f0 c1 f1 c2 f2 " + " ".join(SEED_RUNS) + " f3:2", 32),
+    ],
+)
+def test_when_no_run_ends_within_1_5_runs_with_other_seeds_are_made(
+    monkeypatch, gives_up, seeded, calls, kept
+):
+    record = _fake_stages(monkeypatch, [2.0, 1.6, 1.8], gives_up, seeded=seeded)
+    res = _adapt()
     assert record == calls.split()
     assert res.swaps == kept
+    assert res.seconds["swap"] == 4.0 * calls.count("f")
+    assert res.seconds["curve"] == 3.0 * calls.count("c")
+
+
+def test_the_other_seeds_follow_the_given_one():
+    seeds = [o.seed for o in pipeline._seed_retries(pipeline.AdaptOptions(seed=7))]
+    assert seeds == [7 + k * pipeline.SEED_STRIDE for k in (1, 2, 3)]
+    assert len(set(seeds) | {7}) == 1 + pipeline.SEED_RETRIES
 
 
 def test_a_thin_layers_first_run_is_put_off_and_finishing_a_curved_mesh_is_the_run():
