@@ -237,7 +237,8 @@ def retry_option(fn: Callable) -> Callable:
         is_flag=True,
         help=(
             "No further runs (the hexagonal lattice kept out of thin curved layers, then "
-            "no lattice) when an edge longer than 1.5 is left."
+            "no lattice, then all three with other sampling seeds) when an edge longer "
+            "than 1.5 is left."
         ),
     )(fn)
 
@@ -345,7 +346,13 @@ def max_vertices_option(fn: Callable) -> Callable:
 
 
 def seed_option(fn: Callable) -> Callable:
-    return click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")(fn)
+    return click.option(
+        "--seed",
+        type=click.IntRange(min=0),
+        default=0,
+        show_default=True,
+        help="Random seed (0: each front in its natural order).",
+    )(fn)
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -587,7 +594,9 @@ def adapt(
     --no-length-swaps --no-shift --no-remove --no-repeat --no-bend --no-fit`. When an
     edge longer than 1.5 is left, all stages run again with the hexagonal lattice kept
     out of thin curved layers (--max-sag 0.5), then, if one is still left, without the
-    lattice, and the mesh with the shortest longest edge is kept (--no-retry: not).
+    lattice, then these three with the sampling seeds --seed + 1000, + 2000 and + 3000
+    (each dropped when more than 10 % of its curved edges are longer than 1.5), and the
+    mesh with the shortest longest edge is kept (--no-retry: not).
     """
     fld = load_metric(metric_path)
     _warn_turn(ctx, fld)

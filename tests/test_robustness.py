@@ -544,6 +544,8 @@ def test_bad_option_values_are_usage_errors(tmp_path):
         ["adapt", "--metrc", metric, "-o", tmp_path / "o.msh"],
         ["adapt", "--metric", metric, "-o", tmp_path / "o.msh", "--format", "vtk"],
         ["adapt", "--metric", metric],
+        ["adapt", "--metric", metric, "-o", tmp_path / "o.msh", "--seed", "-1"],
+        ["sample", "--metric", metric, "-o", tmp_path / "o.msh", "--seed", "-3"],
     ):
         result = run(args)
         assert result.exit_code == 2, args
