@@ -109,7 +109,10 @@ RETRY_ABOVE = 1.5
 PUT_OFF_SHARE = 0.10
 
 #: Runs with other sampling seeds made when no run of the given seed leaves its edges
-#: within :data:`RETRY_ABOVE` (:func:`adapt`), and the stride between their seeds.
+#: within :data:`RETRY_ABOVE` (:func:`adapt`), and the stride between their seeds (the
+#: seeds 0 – 2 a batch may use stay apart from each other's retries). Each costs a
+#: curved mesh where it is dropped (about 1 – 2 s on the thin layers of
+#: ``bench/robustness``), a whole run where it is not.
 SEED_RETRIES = 3
 SEED_STRIDE = 1000
 
@@ -483,6 +486,17 @@ def adapt(
     always finished. A run whose curved mesh is an earlier run's (the sag bound
     kept the lattice out of no layer) makes no swap stage: its result would be the
     earlier's, which a tie keeps.
+
+    When no run of the given seed ends within :data:`RETRY_ABOVE`, the same runs are
+    made with other sampling seeds (:func:`_seed_retries`), before the swap stages
+    put off: one whose curved mesh has more than :data:`PUT_OFF_SHARE` of its edges
+    longer than :data:`RETRY_ABOVE` is dropped (the given seed's runs remain to fall
+    back on), and the first that ends within it ends them. In a thin curved layer the
+    columns of points across it, and where they meet, depend on the order in which
+    each front's points are taken (the seed): on the circular layer of 5,000:1 of
+    ``bench/robustness`` (``u52``) seeds 0 and 3 end within 1.5 and seeds 1 and 2 do
+    not, and ``metrics/hard/tight_front`` at seed 3 kept an edge of 1.78 in all three
+    runs of its seed (1.441 with seed 1003).
     """
     opt = options or AdaptOptions()
     if not (opt.retry and opt.hexagons and not opt.straight):
