@@ -163,8 +163,9 @@ def section(results: list[dict], seed: int) -> str:
         "0.3 are left, *+ bend* the nodes of the edges of the triangles still below "
         "quality 0.8 bent off their parabolas where that raises the worse of their two "
         "triangles (the default `adapt`, the meshes above; its further runs, with the "
-        "hexagonal lattice kept out of thin curved layers and then without it, made where "
-        "an edge longer than 1.5 is left, start on none of them). Seconds are the whole "
+        "hexagonal lattice kept out of thin curved layers and then without it, and these "
+        "with other sampling seeds, made where an edge longer than 1.5 is left, start on "
+        "none of them). Seconds are the whole "
         "adaptation of each row.\n\n"
         f"{table(results)}\n{END}\n"
     )
