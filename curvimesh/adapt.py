@@ -543,19 +543,19 @@ def adapt(
             return
         finish(i, curved)
 
+    # the given seed's runs, the last always finished; then the other seeds', which
+    # fall back on them
     own = [("", opt), *retries(opt)]
-    for k, (label, again) in enumerate(own):
-        if k and not longest() > RETRY_ABOVE:
-            break
-        attempt(label, again, "put off" if k < len(own) - 1 else "finish")
-    for seeded in _seed_retries(opt):  # the runs of the given seed fall back on
+    plan = [(label, again, "put off") for label, again in own[:-1]]
+    plan.append((*own[-1], "finish"))
+    for seeded in _seed_retries(opt):
         for label, again in [("", seeded), *retries(seeded)]:
-            if not longest() > RETRY_ABOVE:
-                break
-            label = f"with sampling seed {seeded.seed}" + (
-                f" and {label.removeprefix('with ')}" if label else ""
-            )
-            attempt(label, again, "drop")
+            joined = f" and {label.removeprefix('with ')}" if label else ""
+            plan.append((f"with sampling seed {seeded.seed}{joined}", again, "drop"))
+    for label, again, long_curved in plan:
+        if not longest() > RETRY_ABOVE:
+            break
+        attempt(label, again, long_curved)
     if longest() > RETRY_ABOVE:  # none within 1.5: finish all
         for i, curved in put_off:
             progress(f"the swap stage put off: run {i + 1} of {len(runs)}")
