@@ -38,6 +38,7 @@ import os
 import re
 import sys
 from collections.abc import Callable, Mapping
+from functools import cache
 from pathlib import Path
 
 # GNU OpenMP (numba's threading layer where libgomp is found) spins while it waits
@@ -382,7 +383,9 @@ CACHE_MAX_ENV = "CURVIMESH_CACHE_MAX_MB"
 CACHE_MAX_MB = 512
 
 
-def compile_metric(source: str, g_name: str, gd_name: str) -> CompiledMetric:
+def compile_metric(
+    source: str | Callable[[], str | None], g_name: str, gd_name: str, *, key: str | None = None
+) -> CompiledMetric | None:
     """Compile generated Python source into the two scalar functions of a metric.
 
     ``source`` defines plain functions of (x, y) over ``math``'s names and
@@ -395,8 +398,15 @@ def compile_metric(source: str, g_name: str, gd_name: str) -> CompiledMetric:
     numba caches the machine code beside it: a metric compiled once loads in
     a fraction of the time after. Where that directory cannot be written,
     the source is compiled in memory.
+
+    With ``key``, a string that determines the source, the module is named by
+    a hash of the key instead, and ``source`` may be a function that makes the
+    source: it is called only when the module is not in the cache. None when
+    that source is None (an expression with no scalar code).
     """
-    ns = _load_generated(source, {g_name: "SIG_G", gd_name: "SIG_GD"})
+    ns = _load_generated(source, {g_name: "SIG_G", gd_name: "SIG_GD"}, key=key)
+    if ns is None:
+        return None
     return CompiledMetric(ns[f"{g_name}_cfunc"], ns[f"{gd_name}_cfunc"])
 
 
@@ -406,36 +416,59 @@ def compile_function(source: str, name: str):
     return TypedFunction(_load_generated(source, {name: "SIG_F"})[f"{name}_cfunc"], SIG_F)
 
 
-def _load_generated(source: str, entries: Mapping[str, str]) -> dict:
-    """The namespace of the generated module of ``source``: its functions jitted and,
-    for each entry point, ``{name}_cfunc`` compiled with the named signature."""
+def _module_text(source: str, entries: Mapping[str, str]) -> str:
+    """The generated module of ``source``: its functions jitted and, for each entry
+    point, ``{name}_cfunc`` compiled with the named signature."""
     names = re.findall(r"^def (\w+)\(", source, flags=re.MULTILINE)
     helpers = [n for n in names if n not in entries]
     foot = f"\nfor _name in {helpers!r}:\n"
     foot += '    globals()[_name] = njit(error_model="numpy")(globals()[_name])\n'
     for name, sig in entries.items():
         foot += f'{name}_cfunc = cfunc({sig}, error_model="numpy", cache=True)({name})\n'
-    text = (
+    return (
         "# curvimesh: code compiled by curvimesh.kernels (safe to delete)\n"
         "import math\nfrom math import *\nfrom numba import cfunc, njit\n"
         f"from curvimesh.kernels import SIG_F, SIG_G, SIG_GD, {', '.join(HELPERS)}\n\n"
         + source
         + foot
     )
+
+
+def _load_generated(
+    source: str | Callable[[], str | None], entries: Mapping[str, str], *, key: str | None = None
+) -> dict | None:
+    """The namespace of the generated module (:func:`_module_text`) of ``source``, from
+    the cache directory where it can be; None if ``source`` makes None. The module is
+    named by a hash of its text, or of ``key`` and the entry points when a key is
+    given, and then ``source`` is called only if the module must be written."""
+
+    @cache
+    def text() -> str | None:
+        src = source() if callable(source) else source
+        return None if src is None else _module_text(src, entries)
+
     directory = _cache_directory()
     if directory is not None:
-        key = hashlib.sha256((_VERSION + text).encode()).hexdigest()[:24]
-        path = directory / f"metric_{key}.py"
+        if key is None:
+            if text() is None:
+                return None
+            name_of = _VERSION + text()
+        else:
+            name_of = f"{_VERSION}:{sorted(entries.items())!r}:{key}"
+        module_key = hashlib.sha256(name_of.encode()).hexdigest()[:24]
+        path = directory / f"metric_{module_key}.py"
         try:
             if not path.exists():
+                if text() is None:
+                    return None
                 directory.mkdir(parents=True, exist_ok=True)
                 tmp = path.with_suffix(f".{os.getpid()}.tmp")
-                tmp.write_text(text)
+                tmp.write_text(text())
                 os.replace(tmp, path)
-                prune_cache(directory, _cache_max_bytes(), keep=key)
+                prune_cache(directory, _cache_max_bytes(), keep=module_key)
             else:
                 os.utime(path)  # its use time, for prune_cache
-            name = f"curvimesh_metric_{key}"
+            name = f"curvimesh_metric_{module_key}"
             spec = importlib.util.spec_from_file_location(name, path)
             module = importlib.util.module_from_spec(spec)
             sys.modules[name] = module  # numba's cache finds the module's functions by name
@@ -443,8 +476,10 @@ def _load_generated(source: str, entries: Mapping[str, str]) -> dict:
             return vars(module)
         except Exception:  # an unwritable or broken cache: compile in memory below
             pass
+    if text() is None:
+        return None
     ns: dict = {}
-    exec(compile(text.replace("cache=True", "cache=False"), "<curvimesh generated>", "exec"), ns)
+    exec(compile(text().replace("cache=True", "cache=False"), "<curvimesh generated>", "exec"), ns)
     return ns
 
 

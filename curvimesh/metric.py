@@ -25,12 +25,14 @@ The metric forms (SPEC section 2):
 from __future__ import annotations
 
 import difflib
+import hashlib
 import math
 import os
 import re
 from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
+from pathlib import Path
 
 import numpy as np
 import sympy
@@ -38,7 +40,7 @@ import yaml
 from numpy.typing import NDArray
 from sympy.printing.numpy import NumPyPrinter
 
-from curvimesh import kernels
+from curvimesh import expressions, kernels
 from curvimesh.errors import ExpressionError, MetricError
 from curvimesh.expressions import (
     FUNCTIONS,
@@ -124,7 +126,6 @@ class Component:
     g: tuple[sympy.Expr, sympy.Expr, sympy.Expr]
     sizes: tuple[sympy.Expr, ...] = ()
     key: str = "metric"
-    _fn: Callable = field(init=False, repr=False, compare=False)
     _gfn: Callable = field(init=False, repr=False, compare=False)
     _sizes_fn: Callable | None = field(init=False, repr=False, compare=False)
 
@@ -133,13 +134,24 @@ class Component:
         # lambdifies plainly, where dMax (Heaviside) does not
         g = tuple(smooth_minmax(sympy.sympify(e)) for e in self.g)
         object.__setattr__(self, "g", g)
-        exprs = list(self.g)
-        exprs += [sympy.diff(e, X) for e in self.g]
-        exprs += [sympy.diff(e, Y) for e in self.g]
-        object.__setattr__(self, "_fn", _compile(exprs))
         object.__setattr__(self, "_gfn", _compile(list(self.g)))
         sizes_fn = _compile(self.sizes) if self.sizes else None
         object.__setattr__(self, "_sizes_fn", sizes_fn)
+
+    @cached_property
+    def _fn(self) -> Callable:
+        """g and its exact derivatives ∂ₓg, ∂ᵧg (numpy), compiled at their first use:
+        where the compiled kernel evaluates the field, they are never needed."""
+        exprs = list(self.g)
+        exprs += [sympy.diff(e, X) for e in self.g]
+        exprs += [sympy.diff(e, Y) for e in self.g]
+        return _compile(exprs)
+
+    @property
+    def source_key(self) -> str:
+        """What :meth:`scalar_source` is made from: the expressions of g, exactly
+        (``sympy.srepr``)."""
+        return "expressions:" + ";".join(sympy.srepr(e) for e in self.g)
 
     def evaluate(self, pts: NDArray, derivatives: bool) -> tuple[NDArray, NDArray | None]:
         """g ``(n,2,2)`` and, if asked, ∂g ``(n,2,2,2)`` (exact, from sympy).
@@ -199,8 +211,17 @@ def _pack(g11: NDArray, g12: NDArray, g22: NDArray) -> NDArray:
     return g
 
 
-#: Compiled scalar metrics by their source (:attr:`MetricField.kernel`).
-_COMPILED: dict[str, kernels.CompiledMetric] = {}
+#: Compiled scalar metrics by their source or its key (:attr:`MetricField.kernel`).
+_COMPILED: dict[str, kernels.CompiledMetric | None] = {}
+
+#: What :attr:`MetricField.scalar_source` depends on besides the expressions and
+#: the box: the code that generates it (this module and :mod:`curvimesh.expressions`,
+#: hashed) and sympy's version (its cse and printers).
+_SOURCE_VERSION = hashlib.sha256(
+    Path(__file__).read_bytes()
+    + Path(expressions.__file__).read_bytes()
+    + sympy.__version__.encode()
+).hexdigest()
 
 
 @dataclass(frozen=True)
@@ -311,19 +332,37 @@ def field_gd(x, y):
 """
         return "import math\n" + "".join(parts) + top
 
+    @cached_property
+    def source_key(self) -> str | None:
+        """A key that determines :attr:`scalar_source` (the code that generates it,
+        the box, every component's ``source_key``), cheap to make where the source is
+        not; None when a component has no ``source_key``."""
+        keys = [getattr(c, "source_key", None) for c in self.components]
+        if not all(isinstance(k, str) for k in keys):
+            return None
+        return f"{_SOURCE_VERSION}:{self.box!r}:" + "|".join(keys)
+
     @property
     def kernel(self) -> kernels.CompiledMetric | None:
         """The compiled scalar metric (:func:`curvimesh.kernels.compile_metric` of
         :attr:`scalar_source`), compiled on first use and shared by equal sources;
-        None when ``jit`` is off or there is no scalar source."""
+        None when ``jit`` is off or there is no scalar source.
+
+        Where the field has a :attr:`source_key`, the metric is found by it, in
+        memory and in the cache directory, and the source (sympy's derivatives and
+        code printing, about 0.1 s for three components) is generated only when
+        neither holds it."""
         if not self.jit:
             return None
-        src = self.scalar_source
-        if src is None:
-            return None
-        if src not in _COMPILED:
-            _COMPILED[src] = kernels.compile_metric(src, "field_g", "field_gd")
-        return _COMPILED[src]
+        key = cache_key = self.source_key
+        if key is None:  # the source is its own key
+            key = self.scalar_source
+            if key is None:
+                return None
+        if key not in _COMPILED:
+            source = lambda: self.scalar_source  # noqa: E731
+            _COMPILED[key] = kernels.compile_metric(source, "field_g", "field_gd", key=cache_key)
+        return _COMPILED[key]
 
     def evaluate_numpy(
         self, pts: NDArray, *, derivatives: bool = False, check: bool = True

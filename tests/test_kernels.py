@@ -373,6 +373,53 @@ def test_compiled_metric_is_cached_on_disk_and_loads_from_it(tmp_path, monkeypat
         np.testing.assert_allclose(dg[:, 1, 1, 1], np.cos(pts[:, 1]), rtol=1e-15)
 
 
+def test_a_field_whose_module_is_cached_loads_it_without_generating_its_source(
+    tmp_path, monkeypatch
+):
+    from curvimesh import metric as metric_module
+
+    monkeypatch.setenv(kernels.CACHE_ENV, str(tmp_path))
+    monkeypatch.setattr(metric_module, "_COMPILED", {})
+    g = (1 + X**2, X * Y / 10, 2 + sympy.sin(Y))
+    first = MetricField((Component(g),))
+    assert first.kernel is not None
+    assert "scalar_source" in first.__dict__  # made once, to write the module
+    assert len(list(tmp_path.glob("metric_*.py"))) == 1
+
+    monkeypatch.setattr(metric_module, "_COMPILED", {})  # a new process
+    again = MetricField((Component(g),))
+    pts = np.array([[0.3, -0.7], [2.0, 1.0]])
+    gv, dg = again.evaluate(pts, derivatives=True)
+    assert "scalar_source" not in again.__dict__  # found by its key, on disk
+    assert len(list(tmp_path.glob("metric_*.py"))) == 1
+    np.testing.assert_allclose(gv[:, 0, 1], pts[:, 0] * pts[:, 1] / 10, rtol=1e-15)
+    np.testing.assert_allclose(dg[:, 1, 1, 1], np.cos(pts[:, 1]), rtol=1e-15)
+
+    # the box is in the source (its limit offsets), so in the key; so are the expressions
+    other_box = MetricField((Component(g),), box=(0.0, 0.0, 2.0, 1.0))
+    other_g = MetricField((Component((1 + X**2, X * Y / 10, 2 + sympy.cos(Y))),))
+    assert len({f.source_key for f in (again, other_box, other_g)}) == 3
+    assert other_box.kernel is not None and other_g.kernel is not None
+    assert len(list(tmp_path.glob("metric_*.py"))) == 3
+
+
+def test_a_source_that_cannot_be_made_compiles_to_nothing(tmp_path, monkeypatch):
+    monkeypatch.setenv(kernels.CACHE_ENV, str(tmp_path))
+    assert kernels.compile_metric(lambda: None, "field_g", "field_gd", key="none") is None
+    assert not list(tmp_path.glob("metric_*.py"))
+
+
+def test_the_numpy_derivatives_are_compiled_only_when_used():
+    fld = load_metric(METRICS / "toy.yaml")
+    (comp,) = fld.components
+    assert "_fn" not in comp.__dict__  # loading and validating need g alone
+    pts = np.array([[0.2, 0.3], [0.7, 0.9]])
+    _, dg = fld.evaluate_numpy(pts, derivatives=True)
+    _, dg_kernel = fld.evaluate(pts, derivatives=True)
+    assert "_fn" in comp.__dict__
+    np.testing.assert_allclose(dg, dg_kernel, rtol=1e-12, atol=1e-9)
+
+
 def test_cache_off_compiles_in_memory(tmp_path, monkeypatch):
     monkeypatch.setenv(kernels.CACHE_ENV, "off")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
