@@ -1,14 +1,16 @@
 """What each optimisation beyond the paper's method adds, per metric.
 
-For every metric file, thirteen meshes, each stage added to the previous ones:
+For every metric file, fourteen meshes, each stage added to the previous ones:
 
 * ``paper``: the paper's method alone (Algorithm 1 sampling, Delaunay in
   the metric, geodesic P2 edges with backtracking, curvilinear swaps):
-  ``adapt --no-hexagons --no-fill --no-relocate --no-intrinsic --no-insert --no-split
-  --no-recurve --no-length-swaps --no-shift --no-remove --no-repeat --no-bend``
+  ``adapt --no-hexagons --no-cores --no-fill --no-relocate --no-intrinsic --no-insert
+  --no-split --no-recurve --no-length-swaps --no-shift --no-remove --no-repeat --no-bend``
   (``--no-fit`` too, which only acts on ``interpolation`` metrics);
 * ``+ hexagons``: points sampled on a hexagonal lattice where the metric's
   frame turns slowly (:mod:`curvimesh.sampling`);
+* ``+ cores``: and the fronts grown first from the cores of thin curved layers
+  (anisotropy 100 or more; :mod:`curvimesh.cores`; nothing elsewhere);
 * ``+ fill``: and gap filling of the point cloud (:mod:`curvimesh.fill`);
 * ``+ relocate``: and vertex relocation (:mod:`curvimesh.smooth`);
 * ``+ intrinsic``: and intrinsic Delaunay flips where the metric's frame turns
@@ -31,9 +33,9 @@ For every metric file, thirteen meshes, each stage added to the previous ones:
   without its further runs (``--no-retry``: the rows are built stage by stage; those
   runs start only where an edge longer than 1.5 is left).
 
-The stages are shared where they coincide (three samplings: the paper's,
-with hexagons, with hexagons and filling; one curving of each and of the
-relocated triangulation), which gives the same meshes as thirteen separate
+The stages are shared where they coincide (four samplings: the paper's,
+with hexagons, and cores, and filling; one curving of each and of the
+relocated triangulation), which gives the same meshes as fourteen separate
 ``adapt`` runs. Every figure is from the
 report of SPEC section 4 (:func:`curvimesh.report.mesh_report`); seconds
 are the adaptation alone, for the whole pipeline of each row.
@@ -63,10 +65,11 @@ from curvimesh.report import mesh_report
 
 #: The stages of the swap stage, added in turn after gap filling and relocation (all
 #: but the fit, which only acts on ``interpolation`` metrics).
-SWAP_STAGES = tuple(name for name in pipeline.STAGES[3:] if name != "fit")
+SWAP_STAGES = tuple(name for name in pipeline.SWAP_STAGES if name != "fit")
 STAGES = (
     "paper",
     "+ hexagons",
+    "+ cores",
     "+ fill",
     "+ relocate",
     *(f"+ {n.replace('_', ' ')}" for n in SWAP_STAGES),
@@ -94,27 +97,27 @@ def _row(fld, stage: str, mesh, seconds: float, area: float) -> dict:
 
 
 def ablate(metric_path: str, seed: int = 0) -> dict:
-    """The thirteen rows of one metric file (see the module docstring)."""
+    """The fourteen rows of one metric file (see the module docstring)."""
     fld = load_metric(metric_path)
     pipeline.check_size(fld, pipeline.MAX_VERTICES)
     area = density_integral(fld)  # the report's metric area, computed once
     base = pipeline.AdaptOptions(seed=seed, retry=False, **dict.fromkeys(pipeline.STAGES, False))
     rows = []
-    # the point clouds by (hexagons, fill), and curved meshes before the swap stage
-    # with their seconds so far by (hexagons, fill, relocate)
-    first = ((False, False, False), (True, False, False), (True, True, False), (True, True, True))
+    # the point clouds by (hexagons, cores, fill), and curved meshes before the swap
+    # stage with their seconds so far by (hexagons, cores, fill, relocate)
+    first = [tuple(k < on for k in range(4)) for on in range(5)]
     clouds, p2 = {}, {}
-    for hexagons, fill, relocate in first:
-        opt = replace(base, hexagons=hexagons, fill=fill, relocate=relocate)
-        if (hexagons, fill) not in clouds:
+    for hexagons, cores, fill, relocate in first:
+        opt = replace(base, hexagons=hexagons, cores=cores, fill=fill, relocate=relocate)
+        if (hexagons, cores, fill) not in clouds:
             t = time.perf_counter()
-            clouds[hexagons, fill] = (pipeline.sample(fld, opt), time.perf_counter() - t)
-        cloud, t_sample = clouds[hexagons, fill]
+            clouds[hexagons, cores, fill] = (pipeline.sample(fld, opt), time.perf_counter() - t)
+        cloud, t_sample = clouds[hexagons, cores, fill]
         t = time.perf_counter()
         mesh = pipeline.curve(fld, pipeline.triangulate(cloud, fld, opt), opt)
-        p2[hexagons, fill, relocate] = (mesh, t_sample + time.perf_counter() - t)
+        p2[hexagons, cores, fill, relocate] = (mesh, t_sample + time.perf_counter() - t)
     plan = [(stage, key, ()) for stage, key in zip(STAGES, first, strict=False)]
-    plan += [(STAGES[4 + i], first[-1], SWAP_STAGES[: i + 1]) for i in range(len(SWAP_STAGES))]
+    plan += [(STAGES[5 + i], first[-1], SWAP_STAGES[: i + 1]) for i in range(len(SWAP_STAGES))]
     for stage, key, swap_stages in plan:
         mesh0, t_before = p2[key]
         t = time.perf_counter()
@@ -124,7 +127,7 @@ def ablate(metric_path: str, seed: int = 0) -> dict:
 
 
 def table(results: list[dict]) -> str:
-    """The markdown table of all metrics, thirteen rows each."""
+    """The markdown table of all metrics, fourteen rows each."""
     head = (
         "| metric | stages | vertices | triangles | length min | length max | in [0.7, 1.4] "
         "| quality min | quality mean | valid | efficiency | seconds |\n"
@@ -147,11 +150,13 @@ def section(results: list[dict], seed: int) -> str:
     return (
         f"{BEGIN}\n\n"
         "Each optimisation added in turn to the paper's method (`bench/ablation.py`, "
-        f"seed {seed}): *paper* is `adapt --no-hexagons --no-fill --no-relocate "
+        f"seed {seed}): *paper* is `adapt --no-hexagons --no-cores --no-fill --no-relocate "
         "--no-intrinsic --no-insert --no-split --no-recurve --no-length-swaps --no-shift "
         "--no-remove --no-repeat --no-bend`, *+ hexagons* samples the points on a hexagonal "
         "lattice where the metric's directions turn less than 10° per unit length, "
-        "*+ fill* adds gap filling, *+ relocate* vertex relocation, *+ intrinsic* "
+        "*+ cores* grows the fronts first from the cores of thin curved layers (anisotropy "
+        "100 or more; none in these metrics but `thin_ring`), *+ fill* adds gap filling, "
+        "*+ relocate* vertex relocation, *+ intrinsic* "
         "intrinsic Delaunay flips where the metric's directions turn 60° or more per unit "
         "length, *+ insert* "
         "vertex insertion at long edges, *+ split* curvilinear edge splits, *+ recurve* "

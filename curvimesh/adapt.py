@@ -55,6 +55,7 @@ class AdaptOptions:
     max_vertices: int = MAX_VERTICES
     max_swap_rounds: int = 200
     hexagons: bool = True
+    cores: bool = True
     fill: bool = True
     straight: bool = False
     relocate: bool = True
@@ -72,10 +73,11 @@ class AdaptOptions:
 
 
 #: The stages beyond the paper's method, by their :class:`AdaptOptions` field, in
-#: pipeline order: the first three build and triangulate the point cloud, the others
-#: run in the swap stage.
+#: pipeline order: the first four build and triangulate the point cloud, the others
+#: (:data:`SWAP_STAGES`) run in the swap stage.
 STAGES = (
     "hexagons",
+    "cores",
     "fill",
     "relocate",
     "intrinsic",
@@ -89,6 +91,9 @@ STAGES = (
     "bend",
     "fit",
 )
+
+#: The stages run by the swap stage (:func:`swap`).
+SWAP_STAGES = STAGES[4:]
 
 
 #: A run of :func:`adapt` whose mesh keeps an edge longer than this (the longest edge
@@ -145,7 +150,7 @@ def check_size(fld: MetricField, max_vertices: int) -> float:
 def sample(fld: MetricField, options: AdaptOptions | None = None) -> Mesh:
     """Stage 1: boundary discretisation, Algorithm 1 and gap filling; a point cloud on the box."""
     opt = options or AdaptOptions()
-    sopt = replace(opt.sampling, hexagons=opt.hexagons)
+    sopt = replace(opt.sampling, hexagons=opt.hexagons, cores=opt.cores)
     boundary = discretize_box(fld, target=sopt.step, min_dist=sopt.min_dist)
     pts = sample_points(fld, boundary, sopt, seed=opt.seed)
     if opt.fill:

@@ -281,6 +281,10 @@ STAGE_HELP = {
         "No hexagonal lattice: every point shoots along the metric's principal directions "
         "(the paper's Algorithm 1)."
     ),
+    "cores": (
+        "No sampling from the cores of thin curved layers first (anisotropy 100 or more): "
+        "the fronts grow from the box's sides alone."
+    ),
     "fill": "No gap filling after Algorithm 1.",
     "relocate": "No vertex relocation.",
     "intrinsic": (
@@ -313,7 +317,7 @@ STAGE_HELP = {
 STAGES = tuple((name, STAGE_HELP[name]) for name in pipeline.STAGES)
 
 #: The stages run by the swap stage (``curvimesh swap``).
-SWAP_STAGES = tuple(name for name, _ in STAGES[3:])
+SWAP_STAGES = pipeline.SWAP_STAGES
 
 
 def stage_flags(*names: str) -> Callable[[Callable], Callable]:
@@ -463,7 +467,7 @@ def geodesic(ctx: Context, metric_path, start, end, angle, length) -> None:
 @output_option
 @seed_option
 @max_vertices_option
-@stage_flags("hexagons", "fill")
+@stage_flags("hexagons", "cores", "fill")
 @max_sag_option
 @command
 def sample(ctx: Context, metric_path, output, fmt, seed, max_vertices, stages, max_sag) -> None:
@@ -582,16 +586,18 @@ def adapt(
     """All stages: sample | triangulate | curve | swap, in one process.
 
     The stages beyond the paper's method (a hexagonal lattice of sampled
-    points where the metric's directions turn slowly, gap filling, vertex relocation,
+    points where the metric's directions turn slowly, sampling from the cores of thin
+    curved layers first, gap filling, vertex relocation,
     intrinsic flips where the metric's directions turn fast, vertex insertion,
     edge splits, re-curving, swaps for lengths, vertex shifts, vertex removals,
     repeated passes of these where defects remain, edge nodes bent for quality, and
     for an interpolation metric edge nodes fitted to its function) run by default;
-    --no-hexagons, --no-fill, --no-relocate, --no-intrinsic, --no-insert, --no-split,
-    --no-recurve, --no-length-swaps, --no-shift, --no-remove, --no-repeat, --no-bend
-    and --no-fit turn them off, so that the paper's method alone is `--no-hexagons
-    --no-fill --no-relocate --no-intrinsic --no-insert --no-split --no-recurve
-    --no-length-swaps --no-shift --no-remove --no-repeat --no-bend --no-fit`. When an
+    --no-hexagons, --no-cores, --no-fill, --no-relocate, --no-intrinsic, --no-insert,
+    --no-split, --no-recurve, --no-length-swaps, --no-shift, --no-remove, --no-repeat,
+    --no-bend and --no-fit turn them off, so that the paper's method alone is
+    `--no-hexagons --no-cores --no-fill --no-relocate --no-intrinsic --no-insert
+    --no-split --no-recurve --no-length-swaps --no-shift --no-remove --no-repeat
+    --no-bend --no-fit`. When an
     edge longer than 1.5 is left, all stages run again with the hexagonal lattice kept
     out of thin curved layers (--max-sag 0.5), then, if one is still left, without the
     lattice, then these three with the sampling seeds --seed + 1000, + 2000 and + 3000

@@ -27,6 +27,7 @@ LAYERS = {
     "io": 4,
     "quality": 5,
     "freenode": 5,
+    "cores": 5,
     "boundary": 5,
     "triangulate": 5,
     "interpolation_error": 6,

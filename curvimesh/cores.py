@@ -1,0 +1,284 @@
+"""Cores of thin curved layers, sampled first (beyond the paper).
+
+A thin layer that curves (a circular boundary layer, a layer about an ellipse) is
+meshed by columns of points across it, about one unit apart along it. When the
+fronts of Algorithm 1 (:mod:`curvimesh.sampling`) grow from the box's sides,
+they enter such a layer at several places; the columns grown from different
+entries meet somewhere in it, and a column ends half way through the layer.
+There the edges along the layer span two columns, and no parabola that long
+follows the layer's curve: on a 500:1 layer about a circle of radius 0.15
+(long size 0.1), the shortest parabola between two points of the circle one
+unit apart along it is 1.57 long, and 1.10 at 0.8 units (a free middle node
+gains nothing); its mesh kept edges of 1.5 – 6.3 at every seed tried.
+
+The layer is sampled from its core instead. A row of points is laid along the
+core, successive points a parabola of ``spacing`` apart, and the fronts grow
+from that row (:func:`curvimesh.sampling.sample_points`) before the box's
+sides are sampled: the columns start together on the core and a column ends
+only where the layer has widened.
+
+The core of a layer is where the short size h_min is least across it (along the
+short direction). Its points are found by line searches from the points of a
+grid of the box, kept where the anisotropy there is at least
+:data:`CORE_MIN_ANISOTROPY` and a unit chord along the layer strays at least
+:data:`CORE_MIN_SAG` short sizes from it (:func:`curvimesh.metric.layer_sag`:
+straight layers, a wall's boundary layer, are left to the fronts); each core is
+traced from its thinnest point along the long direction, every step projected
+back on the core.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from curvimesh.geodesic import shortest_parabola
+from curvimesh.metric import MetricField, layer_sag
+
+#: Least anisotropy h_max / h_min of a core. Measured on bench/robustness: the
+#: layers whose meshes missed the targets at some seed with the fronts from the
+#: sides alone are 500:1 and more; at 100:1 (u07) the core changes nothing there.
+CORE_MIN_ANISOTROPY = 100.0
+#: Least sag of a unit chord along the layer at a core, in short sizes.
+CORE_MIN_SAG = 2.0
+#: Anisotropy from which a grid point starts a line search.
+START_MIN_ANISOTROPY = 10.0
+#: The grid (n × n points) of the box the line searches start from.
+CORE_GRID = 129
+#: Samples of h_min along a line search, per round; rounds of a full search.
+SEARCH_SAMPLES = 33
+SEARCH_ROUNDS = 6
+#: Step of a trace along a core, in long sizes h_max.
+TRACE_STEP = 0.25
+#: Most steps of a trace; most cores traced.
+MAX_TRACE_STEPS = 5000
+MAX_CORES = 8
+#: The arc lengths, in units of ``spacing``, tried for the next point along a core.
+_TRIAL = np.linspace(0.3, 1.2, 37)
+
+
+def frames(field: MetricField, pts: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """h_min, h_max ``(n,)``, the short and the long direction ``(n, 2)`` at points.
+
+    The eigenpairs in closed form: λ = m ± r with m = tr g / 2 and
+    r = ½ sqrt((g₁₁ − g₂₂)² + 4 g₁₂²); h_min = 1/sqrt(m + r), h_max = 1/sqrt(λ_min)
+    with λ_min = det g / (m + r); the larger eigenvalue's vector is at the angle
+    ½ atan2(2 g₁₂, g₁₁ − g₂₂). NaN where the metric is undefined.
+    """
+    g = field.tensor(pts, check=False)
+    a, b = g[:, 0, 0] - g[:, 1, 1], 2.0 * g[:, 0, 1]
+    m, r = 0.5 * (g[:, 0, 0] + g[:, 1, 1]), 0.5 * np.hypot(a, b)
+    phi = 0.5 * np.arctan2(b, a)
+    c, s = np.cos(phi), np.sin(phi)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        h_min = 1.0 / np.sqrt(m + r)
+        h_max = np.sqrt((m + r) / (g[:, 0, 0] * g[:, 1, 1] - g[:, 0, 1] ** 2))
+    return h_min, h_max, np.column_stack([c, s]), np.column_stack([-s, c])
+
+
+def least_along(
+    field: MetricField, pts: NDArray, dirs: NDArray, half: NDArray, rounds: int = SEARCH_ROUNDS
+) -> tuple[NDArray, NDArray]:
+    """Line searches: the points ``pts + t dirs``, |t| ≤ ``half``, where h_min is least
+    ``(n, 2)``, and whether that least is inside the interval ``(n,)``.
+
+    Each round samples h_min at :data:`SEARCH_SAMPLES` evenly spaced t and
+    narrows the interval to the two spacings about the least: after k rounds
+    the point is within ``half`` (1/16)^k of a local least of the samples.
+    """
+    offsets = np.linspace(-1.0, 1.0, SEARCH_SAMPLES)
+    centre = np.zeros(len(pts))
+    half = np.asarray(half, dtype=float).copy()
+    inside = np.ones(len(pts), dtype=bool)
+    for k in range(rounds):
+        t = centre[:, None] + half[:, None] * offsets[None, :]
+        h = frames(field, (pts[:, None, :] + t[:, :, None] * dirs[:, None, :]).reshape(-1, 2))[0]
+        j = np.argmin(np.where(np.isfinite(h), h, np.inf).reshape(t.shape), axis=1)
+        if k == 0:
+            inside = (j > 0) & (j < SEARCH_SAMPLES - 1)
+        centre = t[np.arange(len(pts)), j]
+        half = half * 2.0 / (SEARCH_SAMPLES - 1)
+    return pts + centre[:, None] * dirs, inside
+
+
+def _in_box(field: MetricField, p: NDArray) -> NDArray:
+    xmin, ymin, xmax, ymax = field.box
+    return (p[..., 0] > xmin) & (p[..., 0] < xmax) & (p[..., 1] > ymin) & (p[..., 1] < ymax)
+
+
+def core_starts(field: MetricField, n: int = CORE_GRID) -> NDArray:
+    """Points on cores ``(k, 2)``, thinnest first.
+
+    From the points of an n × n grid of the box where the anisotropy is at least
+    :data:`START_MIN_ANISOTROPY` and h_min, sampled at 0, ±1, ±2 grid cells along
+    the short direction, is least inside (a core passes nearby), a line search
+    over ±2 cells: two rounds first, which leave out the layers whose anisotropy
+    stays below half :data:`CORE_MIN_ANISOTROPY`, then all rounds. Kept: the
+    points with the anisotropy and the sag of a core.
+    """
+    xmin, ymin, xmax, ymax = field.box
+    pts = field.sample_points(n)
+    h_min, h_max, v_short, _ = frames(field, pts)
+    with np.errstate(invalid="ignore"):
+        rows = np.flatnonzero(h_max / h_min >= START_MIN_ANISOTROPY)
+    cell = max(xmax - xmin, ymax - ymin) / (n - 1)
+    offsets = cell * np.arange(-2.0, 3.0)
+    q = pts[rows, None, :] + offsets[None, :, None] * v_short[rows, None, :]
+    h = frames(field, q.reshape(-1, 2))[0]
+    h = np.where(np.isfinite(h), h, np.inf).reshape(len(rows), len(offsets))
+    j = np.argmin(h, axis=1)
+    rows = rows[(j > 0) & (j < len(offsets) - 1) & (h[np.arange(len(rows)), j] < h[:, 0])]
+    half = np.full(len(rows), 2.0 * cell)
+    p, inside = least_along(field, pts[rows], v_short[rows], half, rounds=2)
+    h_min, h_max, _, _ = frames(field, p)
+    with np.errstate(invalid="ignore"):
+        rows = rows[inside & (h_max / h_min >= 0.5 * CORE_MIN_ANISOTROPY)]
+    p, inside = least_along(field, pts[rows], v_short[rows], half[: len(rows)])
+    p = p[inside & _in_box(field, p)]
+    if len(p) == 0:
+        return np.zeros((0, 2))
+    g, dg = field.evaluate(p, derivatives=True, check=False)
+    h_min, h_max, _, _ = frames(field, p)
+    with np.errstate(invalid="ignore"):
+        good = (h_max / h_min >= CORE_MIN_ANISOTROPY) & (layer_sag(g, dg) >= CORE_MIN_SAG)
+    p, h_min = p[good], h_min[good]
+    return p[np.argsort(h_min, kind="stable")]
+
+
+def trace(field: MetricField, start: NDArray) -> tuple[NDArray, bool]:
+    """The core through ``start`` as a polyline ``(m, 2)``, and whether it closes.
+
+    Steps of :data:`TRACE_STEP` h_max along the long direction (kept pointing
+    the way of the previous step), each projected back on the core by a line
+    search along the short direction over as much; a way ends where the
+    anisotropy falls below :data:`CORE_MIN_ANISOTROPY`, at the box, or where
+    no least is found; the core closes when a step comes back within 0.6 of a
+    step of the start (the first way is then all of it).
+    """
+    ways: list[list[NDArray]] = []
+    for sign in (1.0, -1.0):
+        p, ahead, way = start, None, []
+        for k in range(MAX_TRACE_STEPS):
+            h_min, h_max, _, v_long = frames(field, p[None])
+            if not h_max[0] / h_min[0] >= CORE_MIN_ANISOTROPY:  # NaN too
+                break
+            step = TRACE_STEP * h_max[0]
+            d = v_long[0] * (sign if ahead is None else np.sign(v_long[0] @ ahead))
+            q = p + step * d
+            if not _in_box(field, q):
+                break
+            v_short = frames(field, q[None])[2]
+            q, inside = least_along(field, q[None], v_short, np.array([step]))
+            if not (inside[0] and _in_box(field, q[0])):
+                break
+            ahead, p = (q[0] - p) / np.linalg.norm(q[0] - p), q[0]
+            if k > 3 and np.linalg.norm(p - start) < 0.6 * step:
+                return np.array([start, *way]), True
+            way.append(p)
+        ways.append(way)
+    return np.array([*ways[1][::-1], start, *ways[0]]), False
+
+
+def _arc_lengths(field: MetricField, line: NDArray) -> NDArray:
+    """Metric length from the first point to each point of a polyline (chords
+    measured in the metric at their middles)."""
+    d = np.diff(line, axis=0)
+    g = field.tensor(0.5 * (line[1:] + line[:-1]), check=False)
+    return np.concatenate([[0.0], np.cumsum(np.sqrt(np.einsum("pi,pij,pj->p", d, g, d)))])
+
+
+def _points_at(field: MetricField, line: NDArray, arc: NDArray, s: NDArray) -> NDArray:
+    """The points of the core at arc lengths ``s``: on the polyline, then projected
+    on the core (a chord of the polyline strays from a curved core)."""
+    pts = np.column_stack([np.interp(s, arc, line[:, 0]), np.interp(s, arc, line[:, 1])])
+    _, h_max, v_short, _ = frames(field, pts)
+    q, inside = least_along(field, pts, v_short, TRACE_STEP * h_max)
+    return np.where(inside[:, None], q, pts)
+
+
+def place(field: MetricField, line: NDArray, closed: bool, spacing: float) -> NDArray:
+    """Points ``(k, 2)`` along a traced core, the shortest parabola between successive
+    ones (:func:`curvimesh.geodesic.shortest_parabola`, equation (3)) ``spacing`` long.
+
+    Across a thin curved layer a parabola cannot follow the core's curve as
+    closely as the layer is thin: the shortest one between two points of the
+    core is longer than the arc between them (a unit arc of the 1,000:1 ring of
+    ``metrics/thin_ring.yaml``: 1.45), and the points are nearer along it.
+    (Arc steps of 0.95 shortened only where the parabola would pass 1.2 or 1.3
+    did worse on the thin rings of bench/robustness: edges of 1.44 – 1.57 left
+    where these steps leave none over 1.41.)
+
+    From the first point, the next is at the arc length where the parabola from
+    the last point is ``spacing`` long, interpolated between the first of the
+    trial arc lengths (0.3 to 1.2 times ``spacing``, 37 of them) whose parabola
+    is that long or longer and the one before. Around a closed core the last gap
+    is a fraction of a step: the walk's arc lengths are scaled so that its
+    steps, the closing one as long as their mean, go round once (the last point
+    is dropped when its gap is under half a step).
+    """
+    if closed:
+        line = np.vstack([line, line[:1]])
+    arc = _arc_lengths(field, line)
+    total = arc[-1]
+    s, pts, walked = 0.0, [_points_at(field, line, arc, np.zeros(1))[0]], [0.0]
+    while True:
+        cand = s + spacing * _TRIAL
+        cand = cand[cand <= total]
+        if len(cand) == 0:
+            break
+        ends = _points_at(field, line, arc, cand)
+        starts = np.repeat(pts[-1][None], len(cand), axis=0)
+        length = shortest_parabola(field, starts, ends, exact_length=False, remember=False).length
+        hit = np.flatnonzero(length >= spacing)
+        if hit.size == 0:
+            break
+        k = hit[0]
+        if k > 0:  # between the last two trials, where the parabola is ``spacing``
+            t = (spacing - length[k - 1]) / (length[k] - length[k - 1])
+            s = cand[k - 1] + t * (cand[k] - cand[k - 1])
+            pts.append(_points_at(field, line, arc, np.array([s]))[0])
+        else:
+            s = cand[0]
+            pts.append(ends[0])
+        walked.append(s)
+    if not closed or len(walked) < 3:
+        return np.array(pts)
+    w = np.array(walked)
+    mean = w[-1] / (len(w) - 1)
+    if total - w[-1] < 0.5 * mean:
+        w = w[:-1]
+        mean = w[-1] / (len(w) - 1)
+    return _points_at(field, line, arc, w * (total / (w[-1] + mean)))
+
+
+#: Points of the cores by field and spacing (dropped with the field): every run of
+#: :func:`curvimesh.adapt.adapt` samples the same field again.
+_CORES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def layer_core_points(field: MetricField, spacing: float) -> NDArray:
+    """Points ``(k, 2)`` along the cores of the field's thin curved layers
+    (:func:`place`), thinnest core first; ``(0, 2)`` where there are none.
+
+    The thinnest start (:func:`core_starts`) is traced (:func:`trace`), the starts
+    within a trace step of its polyline are dropped, and so on, for at most
+    :data:`MAX_CORES` cores.
+    """
+    per_field = _CORES.setdefault(field, {})
+    if spacing in per_field:
+        return per_field[spacing].copy()
+    starts = core_starts(field)
+    out = []
+    while len(starts) and len(out) < MAX_CORES:
+        line, closed = trace(field, starts[0])
+        if len(line) >= 3:
+            out.append(place(field, line, closed, spacing))
+        _, h_max, _, _ = frames(field, starts)
+        far = cKDTree(line).query(starts)[0] > TRACE_STEP * h_max
+        far[0] = False
+        starts = starts[far]
+    per_field[spacing] = np.concatenate(out) if out else np.zeros((0, 2))
+    return per_field[spacing].copy()

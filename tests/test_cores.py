@@ -1,0 +1,131 @@
+"""Cores of thin curved layers: found where they are analytically, nowhere else, and
+sampled first."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from targets import assert_unit_mesh_targets
+
+from curvimesh import cores, sampling
+from curvimesh.adapt import AdaptOptions, adapt
+from curvimesh.boundary import discretize_box
+from curvimesh.geodesic import shortest_parabola
+from curvimesh.metric import load_metric, load_metric_text
+
+METRICS = Path(__file__).resolve().parent.parent / "metrics"
+
+
+def ring(radius: float, h0: float, along: float = 0.1, centre=(0.5, 0.5)) -> str:
+    cx, cy = centre
+    return f"""
+name: ring
+domain: {{box: [[0, 0], [1, 1]]}}
+definitions:
+  r: sqrt((x - {cx})**2 + (y - {cy})**2)
+metric:
+  eigen:
+    sizes: ['min({h0} + 0.25*abs(r - {radius}), {along})', {along}]
+    angle: atan2(y - {cy}, x - {cx})
+"""
+
+
+SPACING = 0.95
+
+
+@pytest.mark.parametrize(("radius", "h0"), [(0.3, 4e-5), (0.15, 2e-4), (0.22, 1e-4), (0.35, 5e-4)])
+def test_a_ring_s_core_is_its_circle_with_points_evenly_round_it(radius, h0):
+    fld = load_metric_text(ring(radius, h0, centre=(0.48, 0.53)))
+    pts = cores.layer_core_points(fld, SPACING)
+    rel = pts - np.array([0.48, 0.53])
+    # on the circle where the radial size is least, to the line search's precision
+    np.testing.assert_allclose(np.hypot(rel[:, 0], rel[:, 1]), radius, atol=1e-8)
+    # once round, evenly: by symmetry every step is the same angle and parabola (to
+    # the arc lengths along the traced polyline, chords measured at their middles)
+    angle = np.sort(np.arctan2(rel[:, 1], rel[:, 0]))
+    steps = np.diff(np.concatenate([angle, angle[:1] + 2 * math.pi]))
+    np.testing.assert_allclose(steps, 2 * math.pi / len(pts), rtol=1e-3)
+    length = shortest_parabola(fld, pts, np.roll(pts, -1, axis=0)).length
+    assert np.ptp(length) < 2e-3 * length.max()
+    # as many as steps of a parabola of 0.95 between points of the exact circle go
+    # round, the last fraction of a step counted when it is half a step or more
+    centre = np.array([0.48, 0.53])
+
+    def step_length(t: float) -> float:
+        a = centre + radius * np.array([1.0, 0.0])
+        b = centre + radius * np.array([math.cos(t), math.sin(t)])
+        return float(shortest_parabola(fld, a[None], b[None]).length[0])
+
+    lo, hi = 0.0, 1.5
+    for _ in range(50):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if step_length(mid) < SPACING else (lo, mid)
+    turns = 2 * math.pi / lo
+    assert abs(turns % 1 - 0.5) > 0.05  # not a borderline case
+    assert len(pts) == math.floor(turns) + (turns % 1 >= 0.5)
+
+
+def test_an_ellipse_s_core_is_the_ellipse():
+    text = """
+name: ellipse
+domain: {box: [[-1, -0.7], [1, 0.7]]}
+definitions:
+  q: sqrt((x/0.7)**2 + (y/0.45)**2)
+metric:
+  eigen:
+    sizes: ['min(0.00005 + 0.1*abs(q - 1), 0.05)', 0.05]
+    angle: atan2(y/0.45**2, x/0.7**2)
+"""
+    fld = load_metric_text(text)
+    pts = cores.layer_core_points(fld, SPACING)
+    q = np.hypot(pts[:, 0] / 0.7, pts[:, 1] / 0.45)
+    np.testing.assert_allclose(q, 1.0, atol=1e-7)
+    # round the whole ellipse (perimeter about 3.7, long size 0.05: some 75 units)
+    assert 60 <= len(pts) <= 90
+    turn = np.unwrap(np.sort(np.arctan2(pts[:, 1] / 0.45, pts[:, 0] / 0.7)))
+    assert np.max(np.diff(np.concatenate([turn, turn[:1] + 2 * math.pi]))) < 0.2
+
+
+def unit_box(metric: str) -> str:
+    return f"name: m\ndomain: {{box: [[0, 0], [1, 1]]}}\nmetric: {metric}\n"
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        # a wall's boundary layer, 1,000:1 and straight: no sag
+        unit_box("{eigen: {sizes: ['0.0001 + 0.3*y', 0.1], angle: pi/2}}"),
+        # constant and 1,000:1: the short size has no least across
+        unit_box("{eigen: {sizes: [0.0001, 0.1], angle: 0.3}}"),
+        # a ring of 40:1 at its thinnest
+        ring(0.3, 0.0025),
+    ],
+)
+def test_no_core_in_straight_constant_or_mildly_anisotropic_layers(text):
+    assert cores.layer_core_points(load_metric_text(text), SPACING).shape == (0, 2)
+
+
+@pytest.mark.parametrize("name", ["toy", "three_toys", "circular_layer", "boundary_layer"])
+def test_the_examples_without_a_thin_curved_layer_have_no_core(name):
+    assert len(cores.layer_core_points(load_metric(METRICS / f"{name}.yaml"), SPACING)) == 0
+
+
+def test_the_fronts_start_from_the_core_before_the_sides():
+    fld = load_metric(METRICS / "thin_ring.yaml")
+    opt = sampling.SamplingOptions()
+    boundary = discretize_box(fld, target=opt.step, min_dist=opt.min_dist)
+    pts = sampling.sample_points(fld, boundary, opt)
+    core = cores.layer_core_points(fld, sampling.CORE_SPACING * opt.step)
+    nb = len(boundary.vertices)
+    np.testing.assert_array_equal(pts[nb : nb + len(core)], core)
+    without = sampling.sample_points(fld, boundary, sampling.SamplingOptions(cores=False))
+    assert not np.isin(core[:, 0], without[:, 0]).any()
+
+
+def test_a_thin_ring_meets_the_targets_in_one_run():
+    fld = load_metric(METRICS / "thin_ring.yaml")
+    res = adapt(fld, AdaptOptions(retry=False))
+    assert_unit_mesh_targets(fld, res.mesh)
