@@ -21,7 +21,7 @@ Writes ``robustness.md`` (a table of the meshes that miss a target and a
 count of those that meet them all) into ``--out`` (``bench/`` by default); the
 meshes and pictures go to ``--work`` (a temporary directory by default).
 
-    python bench/robustness.py                     # seeds 0 1 2, about 32 minutes
+    python bench/robustness.py                     # seeds 0 1 2, about 12 minutes
     python bench/robustness.py --seeds 0 --jobs 1 bench/robustness/u01*.yaml
 """
 
