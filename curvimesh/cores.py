@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from curvimesh.geodesic import shortest_parabola
-from curvimesh.metric import MetricField, layer_sag
+from curvimesh.metric import MetricField, eigen_frame, layer_sag
 
 #: Least anisotropy h_max / h_min of a core. Measured on bench/robustness: the
 #: layers whose meshes missed the targets at some seed with the fronts from the
@@ -63,16 +63,12 @@ _TRIAL = np.linspace(0.3, 1.2, 37)
 def frames(field: MetricField, pts: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """h_min, h_max ``(n,)``, the short and the long direction ``(n, 2)`` at points.
 
-    The eigenpairs in closed form: λ = m ± r with m = tr g / 2 and
-    r = ½ sqrt((g₁₁ − g₂₂)² + 4 g₁₂²); h_min = 1/sqrt(m + r), h_max = 1/sqrt(λ_min)
-    with λ_min = det g / (m + r); the larger eigenvalue's vector is at the angle
-    ½ atan2(2 g₁₂, g₁₁ − g₂₂). NaN where the metric is undefined.
+    From the eigenpairs λ = m ± r in closed form (:func:`curvimesh.metric.eigen_frame`):
+    h_min = 1/sqrt(m + r), h_max = 1/sqrt(λ_min) with λ_min = det g / (m + r) (no
+    cancellation however thin the layer). NaN where the metric is undefined.
     """
     g = field.tensor(pts, check=False)
-    a, b = g[:, 0, 0] - g[:, 1, 1], 2.0 * g[:, 0, 1]
-    m, r = 0.5 * (g[:, 0, 0] + g[:, 1, 1]), 0.5 * np.hypot(a, b)
-    phi = 0.5 * np.arctan2(b, a)
-    c, s = np.cos(phi), np.sin(phi)
+    m, r, c, s = eigen_frame(g)
     with np.errstate(invalid="ignore", divide="ignore"):
         h_min = 1.0 / np.sqrt(m + r)
         h_max = np.sqrt((m + r) / (g[:, 0, 0] * g[:, 1, 1] - g[:, 0, 1] ** 2))
@@ -104,11 +100,6 @@ def least_along(
     return pts + centre[:, None] * dirs, inside
 
 
-def _in_box(field: MetricField, p: NDArray) -> NDArray:
-    xmin, ymin, xmax, ymax = field.box
-    return (p[..., 0] > xmin) & (p[..., 0] < xmax) & (p[..., 1] > ymin) & (p[..., 1] < ymax)
-
-
 def core_starts(field: MetricField, n: int = CORE_GRID) -> NDArray:
     """Points on cores ``(k, 2)``, thinnest first.
 
@@ -137,7 +128,7 @@ def core_starts(field: MetricField, n: int = CORE_GRID) -> NDArray:
     with np.errstate(invalid="ignore"):
         rows = rows[inside & (h_max / h_min >= 0.5 * CORE_MIN_ANISOTROPY)]
     p, inside = least_along(field, pts[rows], v_short[rows], half[: len(rows)])
-    p = p[inside & _in_box(field, p)]
+    p = p[inside & field.inside(p)]
     if len(p) == 0:
         return np.zeros((0, 2))
     g, dg = field.evaluate(p, derivatives=True, check=False)
@@ -168,11 +159,11 @@ def trace(field: MetricField, start: NDArray) -> tuple[NDArray, bool]:
             step = TRACE_STEP * h_max[0]
             d = v_long[0] * (sign if ahead is None else np.sign(v_long[0] @ ahead))
             q = p + step * d
-            if not _in_box(field, q):
+            if not field.inside(q):
                 break
             v_short = frames(field, q[None])[2]
             q, inside = least_along(field, q[None], v_short, np.array([step]))
-            if not (inside[0] and _in_box(field, q[0])):
+            if not (inside[0] and field.inside(q[0])):
                 break
             ahead, p = (q[0] - p) / np.linalg.norm(q[0] - p), q[0]
             if k > 3 and np.linalg.norm(p - start) < 0.6 * step:
@@ -271,14 +262,14 @@ def layer_core_points(field: MetricField, spacing: float) -> NDArray:
     if spacing in per_field:
         return per_field[spacing].copy()
     starts = core_starts(field)
+    reach = TRACE_STEP * frames(field, starts)[1]
     out = []
     while len(starts) and len(out) < MAX_CORES:
         line, closed = trace(field, starts[0])
         if len(line) >= 3:
             out.append(place(field, line, closed, spacing))
-        _, h_max, _, _ = frames(field, starts)
-        far = cKDTree(line).query(starts)[0] > TRACE_STEP * h_max
+        far = cKDTree(line).query(starts)[0] > reach
         far[0] = False
-        starts = starts[far]
+        starts, reach = starts[far], reach[far]
     per_field[spacing] = np.concatenate(out) if out else np.zeros((0, 2))
     return per_field[spacing].copy()

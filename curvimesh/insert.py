@@ -176,17 +176,6 @@ def insert_points(
     return InsertResult(mesh, total)
 
 
-def _inside_box(x: NDArray, box: tuple[float, float, float, float]) -> NDArray:
-    with np.errstate(invalid="ignore"):
-        return (
-            np.isfinite(x).all(axis=-1)
-            & (x[..., 0] > box[0])
-            & (x[..., 0] < box[2])
-            & (x[..., 1] > box[1])
-            & (x[..., 1] < box[3])
-        )
-
-
 def _far_from_vertices(field: MetricField, mesh: Mesh, x: NDArray, min_dist: float) -> NDArray:
     """``(k,)`` whether points ``x`` ``(k, 2)`` are min_dist from every vertex of the mesh."""
     pts = np.asarray(mesh.points)
@@ -234,7 +223,7 @@ def _insert_round(
 
     pos = star_positions(pts, r1, r2, field)  # (s, P, 2)
     npos = pos.shape[1]
-    pos_ok = _inside_box(pos, field.box)
+    pos_ok = field.inside(pos)
     pos = np.where(pos_ok[..., None], pos, pts[r1[:, 3]][:, None])  # placeholder where not ok
     flat = pos.reshape(-1, 2)
     pos_ok &= _far_from_vertices(field, mesh, flat, min_dist).reshape(ns, npos)

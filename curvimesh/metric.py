@@ -474,6 +474,13 @@ def field_gd(x, y):
                     )
         self.evaluate_numpy(pts, derivatives=False, check=True)
 
+    def inside(self, pts: NDArray) -> NDArray:
+        """Whether points ``(..., 2)`` lie strictly inside the box (not where NaN)."""
+        xmin, ymin, xmax, ymax = self.box
+        x, y = pts[..., 0], pts[..., 1]
+        with np.errstate(invalid="ignore"):
+            return (x > xmin) & (x < xmax) & (y > ymin) & (y < ymax)
+
     def sample_points(self, n: int = 65) -> NDArray:
         """A regular n×n grid over the box, boundary included, ``(n*n, 2)``."""
         xmin, ymin, xmax, ymax = self.box
@@ -527,6 +534,23 @@ def frame_turn(g: NDArray, dg: NDArray, *, min_anisotropy: float = TURN_MIN_ANIS
     return np.where(np.isfinite(out), out, 0.0)
 
 
+def eigen_frame(g: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """The eigenpairs of symmetric 2×2 matrices ``(n, 2, 2)`` in closed form: m, r, c, s
+    ``(n,)`` with the eigenvalues λ = m ± r, m = tr g / 2, r = ½ sqrt(a² + b²)
+    (a = g₁₁ − g₂₂, b = 2 g₁₂), and (c, s) = (cos φ, sin φ), φ = ½ atan2(b, a), the unit
+    eigenvector of the larger one ((−s, c) that of the smaller).
+
+    >>> [float(v[0]) for v in eigen_frame(np.array([[[4.0, 0.0], [0.0, 1.0]]]))]
+    [2.5, 1.5, 1.0, 0.0]
+    """
+    a = g[:, 0, 0] - g[:, 1, 1]
+    b = 2.0 * g[:, 0, 1]
+    m = 0.5 * (g[:, 0, 0] + g[:, 1, 1])
+    r = 0.5 * np.hypot(a, b)
+    phi = 0.5 * np.arctan2(b, a)
+    return m, r, np.cos(phi), np.sin(phi)
+
+
 def _frame_rates(g: NDArray, dg: NDArray) -> tuple[NDArray, NDArray, NDArray]:
     """The turns of :func:`frame_turn` per unit step across the layer (along the
     short size) and along it (the long size), and the anisotropy h_max / h_min."""
@@ -534,12 +558,7 @@ def _frame_rates(g: NDArray, dg: NDArray) -> tuple[NDArray, NDArray, NDArray]:
     b = 2.0 * g[:, 0, 1]
     da = dg[:, 0, 0, :] - dg[:, 1, 1, :]
     db = 2.0 * dg[:, 0, 1, :]
-    # the eigenpairs in closed form: λ = m ± r with m = tr g / 2, r = ½ sqrt(a² + b²);
-    # (cos φ, sin φ) belongs to the larger one, (−sin φ, cos φ) to the smaller
-    m = 0.5 * (g[:, 0, 0] + g[:, 1, 1])
-    r = 0.5 * np.hypot(a, b)
-    phi = 0.5 * np.arctan2(b, a)
-    c, s = np.cos(phi), np.sin(phi)
+    m, r, c, s = eigen_frame(g)  # (c, s) along the short size, (−s, c) the long
     with np.errstate(invalid="ignore", divide="ignore"):
         grad = (a[:, None] * db - b[:, None] * da) / (2.0 * (a * a + b * b))[:, None]
         across = np.abs(grad[:, 0] * c + grad[:, 1] * s) / np.sqrt(m + r)

@@ -516,10 +516,7 @@ def admissible_rows(
     ``boundary_dist`` from its sides and ``min_dist`` from the points of ``index``,
     ascending, and their search regions (:func:`search_regions`). A candidate refused here
     stays refused as points are added to the index."""
-    xmin, ymin, xmax, ymax = field.box
-    rows = np.flatnonzero(
-        (cand[:, 0] > xmin) & (cand[:, 0] < xmax) & (cand[:, 1] > ymin) & (cand[:, 1] < ymax)
-    )
+    rows = np.flatnonzero(field.inside(cand))
     if len(rows) == 0:
         return rows, SearchRegions(np.zeros((0, 2)), np.zeros((0, 3)))
     cand = cand[rows]
@@ -574,8 +571,8 @@ def sample_points(
         index.add(boundary.seeds)  # fixed with the boundary; the fronts keep away from them
     if opt.cores:
         core = layer_core_points(field, CORE_SPACING * opt.step)
-        core = core[accepted_rows(field, index, core, opt)] if len(core) else core
         if len(core):
+            core = core[accepted_rows(field, index, core, opt)]
             index.add(core)
             _grow(field, index, core, None, (), opt, rng)
     _grow(field, index, boundary.vertices, _SIDE_TANGENTS[boundary.sides], BOUNDARY_TURNS, opt, rng)

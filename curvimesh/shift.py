@@ -601,9 +601,7 @@ def _candidates(
         turned = np.array([c * chord[0] - s * chord[1], s * chord[0] + c * chord[1]])
         moves += [x + t * turned for t in STEPS]
     cand = np.array(moves)
-    xmin, ymin, xmax, ymax = field.box
-    inside = (cand[:, 0] > xmin) & (cand[:, 0] < xmax) & (cand[:, 1] > ymin) & (cand[:, 1] < ymax)
-    return cand[inside]
+    return cand[field.inside(cand)]
 
 
 def _star_nodes(base: NDArray, slots: NDArray, x: NDArray, mids: NDArray) -> NDArray:
