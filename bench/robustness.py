@@ -1,11 +1,12 @@
 """The unit-mesh targets on metrics the method was not tuned on, at several seeds.
 
 Runs ``curvimesh batch`` (the command line, as a user would) over the metric
-files of ``bench/robustness/`` (60 fields of the kinds of issue 7: constant
+files of ``bench/robustness/`` (70 fields of the kinds of issue 7: constant
 anisotropic fields at other angles, wall layers of 500:1 to 10,000:1, tilted,
 circular and elliptic layers (up to 5,000:1), concentric circles with a singular
 centre, curved fronts, variable isotropic sizes, intersections, a swirl, a shock, a
-point grading and a function's interpolation metric; written to test the method, not tuned on) once
+point grading, a frame turning fast, components given directly and functions'
+interpolation metrics; written to test the method, not tuned on) once
 per seed, with ``--no-fit`` (the unit mesh: the fit of an interpolation metric
 trades unit lengths for the function's error, :mod:`curvimesh.fit`), and checks
 every mesh against the targets:
@@ -21,7 +22,7 @@ Writes ``robustness.md`` (a table of the meshes that miss a target and a
 count of those that meet them all) into ``--out`` (``bench/`` by default); the
 meshes and pictures go to ``--work`` (a temporary directory by default).
 
-    python bench/robustness.py                     # seeds 0 1 2, about 27 minutes
+    python bench/robustness.py                     # seeds 0 1 2, about 31 minutes
     python bench/robustness.py --seeds 0 --jobs 1 bench/robustness/u01*.yaml
 """
 
