@@ -129,3 +129,32 @@ def test_a_thin_ring_meets_the_targets_in_one_run():
     fld = load_metric(METRICS / "thin_ring.yaml")
     res = adapt(fld, AdaptOptions(retry=False))
     assert_unit_mesh_targets(fld, res.mesh)
+
+
+def test_the_columns_across_a_small_ring_start_on_the_core_at_every_seed():
+    # 1,000:1 about a circle of radius 0.15 (13 core points 27.7° apart): a geodesic
+    # shot across a rotationally symmetric layer stays radial, so the columns grown
+    # from the core keep its points' angles, inside the circle as outside. A shot
+    # along the core leaves it, as a tangent leaves a circle, and landed 12° on, a
+    # quarter of a step inside: the inner columns started staggered (0.21 rad off
+    # the core's angles). The fronts grown from a core keep their order, so the
+    # layer's points do not depend on the seed.
+    centre = np.array([0.45, 0.55])
+    fld = load_metric_text(ring(0.15, 1e-4, centre=tuple(centre)))
+    opt = sampling.SamplingOptions()
+    boundary = discretize_box(fld, target=opt.step, min_dist=opt.min_dist)
+    core = cores.layer_core_points(fld, sampling.CORE_SPACING * opt.step)
+    assert len(core) == 13
+    angles = np.arctan2(core[:, 1] - centre[1], core[:, 0] - centre[0])
+    layers = []
+    for seed in (0, 1, 2):
+        rel = sampling.sample_points(fld, boundary, opt, seed=seed) - centre
+        r = np.hypot(rel[:, 0], rel[:, 1])
+        band = np.abs(r - 0.15) < 5e-4  # the rows within about four short sizes
+        assert np.count_nonzero(r[band] < 0.15 - 1e-8) >= 3 * len(core)  # rows inside too
+        a = np.arctan2(rel[band, 1], rel[band, 0])
+        off = np.abs((a[:, None] - angles[None, :] + math.pi) % (2 * math.pi) - math.pi)
+        assert off.min(axis=1).max() < 1e-9
+        layers.append(np.sort(rel[band], axis=0))
+    for other in layers[1:]:
+        np.testing.assert_array_equal(other, layers[0])
