@@ -555,7 +555,8 @@ def sample_points(
 
     With ``seed`` 0 every front is processed in its natural order; another
     seed shuffles each front (``np.random.default_rng(seed)``), which changes
-    how conflicts between candidates are resolved.
+    how conflicts between candidates are resolved, but those grown from a core
+    (:func:`_grow`).
 
     With ``options.cores`` (the default), the fronts first grow from points laid
     along the cores of the field's thin curved layers
