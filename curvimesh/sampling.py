@@ -555,8 +555,8 @@ def sample_points(
 
     With ``seed`` 0 every front is processed in its natural order; another
     seed shuffles each front (``np.random.default_rng(seed)``), which changes
-    how conflicts between candidates are resolved, but those grown from a core
-    (:func:`_grow`).
+    how conflicts between candidates are resolved, but those grown from a core,
+    which keep their order (:func:`_grow`).
 
     With ``options.cores`` (the default), the fronts first grow from points laid
     along the cores of the field's thin curved layers
@@ -575,7 +575,9 @@ def sample_points(
         if len(core):
             core = core[accepted_rows(field, index, core, opt)]
             index.add(core)
-            _grow(field, index, core, None, (), opt, rng, across=True)
+            # in the core's order, not shuffled: where the rows shrink (inside a ring)
+            # the columns that must end then end evenly (see _grow)
+            _grow(field, index, core, None, (), opt, None)
     _grow(field, index, boundary.vertices, _SIDE_TANGENTS[boundary.sides], BOUNDARY_TURNS, opt, rng)
     return index.points.copy()
 
@@ -596,15 +598,14 @@ def _grow(
     turns: tuple[int, ...],
     opt: SamplingOptions,
     rng: np.random.Generator | None,
-    across: bool = False,
 ) -> None:
     """Algorithm 1's fronts from ``front`` (points of ``index``) until no candidate is
     kept, each front's kept points added to ``index``. The first front shoots at 60° ×
-    ``turns`` from ``ref`` where the hexagonal lattice fits, or, with ``ref`` None,
-    along the principal directions; the later ones from the velocities that reached
-    their points. Each front is shuffled by ``rng`` (None: kept in order).
+    ``turns`` from ``ref`` where the hexagonal lattice fits; the later ones from the
+    velocities that reached their points. Each front is shuffled by ``rng`` (None:
+    kept in order).
 
-    With ``across`` (the row laid along a layer's core, :func:`sample_points`), the
+    With ``ref`` None (the row laid along a layer's core, :func:`sample_points`), the
     first front shoots along ±v₂ alone, across the layer: the row's own points are its
     neighbours along it, and a geodesic shot along a curved core leaves it (as a
     tangent leaves a circle) to land between two of them, off the core. Where that
@@ -612,21 +613,18 @@ def _grow(
     the chords of the rows beyond, and the triangulation joins the two sides by edges
     across the core (on a 1,000:1 layer about a circle of radius 0.15, 13 points
     27.7° apart: the shot lands 0.65 short sizes inside, 12° on, and edges up to 6.9
-    were left). And the fronts grown from a core are not shuffled: inside a circular
-    layer the rows shrink with the radius, and where two columns come closer than
+    were left). Such fronts are grown in order (``rng`` None): inside a circular layer
+    the rows shrink with the radius, and where two columns come closer than
     ``min_dist`` (10 short sizes inside on that layer) the greedy conflict resolution
     in the core's order ends every other column, while a shuffled order leaves gaps
     of three columns, as many as chance makes, in which a shot along the row lands
     under the chords of the rows beyond (edges of 10 – 16)."""
     arrival = np.full(front.shape, np.nan)  # the velocity each point was reached with
-    if across:
-        rng = None
     hexagons = opt.hexagons and ref is not None
     while len(front) and index.size < opt.max_points:
         dirs, shots = front_directions(field, front, arrival, ref, turns, hexagons, opt.max_sag)
-        if across:  # slots 0, 1 hold ±v₁ (eigh sorts λ ascending): the long direction
+        if ref is None:  # slots 0, 1 hold ±v₁ (eigh sorts λ ascending): the long direction
             shots[:, :2] = False
-            across = False
         dirs = dirs.reshape(-1, 2)[shots.ravel()]
         starts = np.repeat(front, 4, axis=0)[shots.ravel()]
         shot = shoot(field, starts, dirs, opt.step, tol=opt.shoot_tol)
