@@ -2097,35 +2097,58 @@ def _star_triangle(nodes, base, slots, r, ax, ay, mid):
 @njit(**_JIT)
 def screen_moves(
     fn, cand, others, alpha, base, slots, lens0, t, w, shape, du, dv, aw, gu, gv,
-    rtol, shortest, longest, ok, new_len, worst,
+    rtol, shortest, longest, q_min, push, keep, ok, new_len, worst,
 ):  # fmt: skip
     """The moves of a star's vertex to each of ``cand`` ``(k, 2)``, each incident edge
     (other ends ``others`` ``(j, 2)``) keeping its offset ``alpha`` ``(j,)``: the middle
-    node (x′ + o)/2 + α (o − x′)×e₃, the length by the rule (``t``, ``w``) into
-    ``new_len`` ``(k, j)``; ``ok`` ``(k,)`` whether every triangle of the star (nodes
-    ``base`` ``(s, 6, 2)`` with ``slots`` ``(s, 6)``: −1 the vertex, e >= 0 the node of
-    incident edge e) is valid (:func:`_valid_p2`) and every incident edge in
-    [``shortest``, ``longest``]; for those, ``worst`` ``(k,)`` the least quality (4) of
-    the star (areas by the rule ``shape``, ``du``, ``dv``, ``aw``; the other edges of
-    triangle r keep their lengths ``lens0[r]``, a slot 3 + e of an incident edge takes
-    its new one). The screen of :func:`curvimesh.shift._screened`, one candidate a row."""
+    node (x′ + o)/2 + α (o − x′)×e₃, the length by the rule (``t``, ``w``). ``ok`` ``(k,)``:
+    whether every incident edge is in [``shortest``, ``longest``] and every triangle of
+    the star (nodes ``base`` ``(s, 6, 2)`` with ``slots`` ``(s, 6)``: −1 the vertex, e >= 0
+    the node of incident edge e) is valid (:func:`_valid_p2`); for those, the lengths
+    into ``new_len`` ``(k, j)`` (the other rows are left partly written) and ``worst``
+    ``(k,)``, the least quality (4) of the star (areas by the rule ``shape``, ``du``,
+    ``dv``, ``aw``; the other edges of triangle r keep their lengths ``lens0[r]``, a slot
+    3 + e of an incident edge takes its new one) — or −inf where the candidate cannot
+    be among the ``keep`` (>= 1) best of the screen of :func:`curvimesh.shift._screened`:
+    those of worst quality above ``q_min``, scored by it (``push`` < 0) or by the length
+    of incident edge ``push``, higher first, ties to the lower index.
+
+    The candidates are taken in order, and the measures a candidate does not need are
+    not made (what the screen picks is that of the full measure):
+
+    * the lengths stop at the first edge out of bounds, the edge that stopped the
+      candidate before tried first (a vertex moved further along a ray fails on
+      the same edge);
+    * the qualities stop once one is at most ``q_min``, or at most the ``keep``-th
+      best score of the candidates before (which a later candidate must beat, ties
+      going to the first), the triangle that was worst for the candidate before
+      measured first; with ``push``, a candidate whose edge is not longer than the
+      ``keep``-th longest before is not measured."""
     k, j, s = cand.shape[0], others.shape[0], base.shape[0]
     nodes = np.empty((6, 2))
     mid = np.empty((j, 2))
     b = np.empty(6)
     scale = 4.0 * math.sqrt(3.0)
+    top = np.full(max(keep, 1), -math.inf)  # the best scores so far, descending
+    found = 0
+    first_e = first_r = 0
     for c in range(k):
         ax, ay = cand[c, 0], cand[c, 1]
-        good = True
+        worst[c] = -math.inf
         for e in range(j):
             bx, by = others[e, 0], others[e, 1]
-            mx = 0.5 * (ax + bx) + alpha[e] * (by - ay)
-            my = 0.5 * (ay + by) + alpha[e] * (-(bx - ax))
-            mid[e, 0], mid[e, 1] = mx, my
-            length = _parabola_length(fn, ax, ay, bx, by, mx, my, t, w)
+            mid[e, 0] = 0.5 * (ax + bx) + alpha[e] * (by - ay)
+            mid[e, 1] = 0.5 * (ay + by) + alpha[e] * (-(bx - ax))
+        good = True
+        for i in range(j):
+            e = (first_e + i) % j
+            bx, by = others[e, 0], others[e, 1]
+            length = _parabola_length(fn, ax, ay, bx, by, mid[e, 0], mid[e, 1], t, w)
             new_len[c, e] = length
             if not (length <= longest and length >= shortest):
                 good = False
+                first_e = e
+                break
         for r in range(s):
             if not good:
                 break
@@ -2134,8 +2157,14 @@ def screen_moves(
         ok[c] = good
         if not good:
             continue
+        bound = top[keep - 1] if found >= keep else -math.inf
+        if push >= 0 and new_len[c, push] <= bound:
+            continue
+        floor = q_min if push >= 0 else max(q_min, bound)
         least = math.inf
-        for r in range(s):
+        low_r = first_r
+        for i in range(s):
+            r = (first_r + i) % s
             _star_triangle(nodes, base, slots, r, ax, ay, mid)
             area = _metric_area(fn, nodes, shape, du, dv, aw)
             total = 0.0
@@ -2146,8 +2175,23 @@ def screen_moves(
             q = scale * area / total
             if not math.isfinite(q):
                 q = 0.0
-            least = min(least, q)
+            if q < least:
+                least, low_r = q, r
+            if least <= floor:
+                break
+        first_r = low_r
+        if least <= floor:
+            continue
         worst[c] = least
+        score = new_len[c, push] if push >= 0 else least
+        # insert into the descending top (a tie stays behind the earlier candidate)
+        i = min(found, keep - 1)
+        if found < keep or score > top[i]:
+            while i > 0 and top[i - 1] < score:
+                top[i] = top[i - 1]
+                i -= 1
+            top[i] = score
+            found += 1
 
 
 # --------------------------------------------------------------------------- #

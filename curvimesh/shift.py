@@ -184,8 +184,8 @@ def _star(mesh: Mesh, inc: _Incidence, v: int) -> _Star:
     others = np.where(mesh.edges[edges, 0] == v, mesh.edges[edges, 1], mesh.edges[edges, 0])
     slots = np.full((len(tris), 6), -2)
     slots[mesh.triangles[tris] == v] = -1
-    for k, e in enumerate(edges):
-        slots[:, 3:][mesh.tri_edges[tris] == e] = k
+    hit = mesh.tri_edges[tris][:, :, None] == edges  # (s, 3, j)
+    slots[:, 3:] = np.where(hit.any(axis=2), hit.argmax(axis=2), -2)
     return _Star(tris, edges, others, slots)
 
 
@@ -594,14 +594,23 @@ class _Rule:
 def _candidates(
     field: MetricField, x: NDArray, chord: NDArray, angles: tuple[float, ...] = ANGLES
 ) -> NDArray:
-    """Positions ``(k, 2)`` x + t R(φ) chord strictly inside the box, φ in ``angles``."""
-    moves = []
-    for phi in angles:
-        c, s = np.cos(phi), np.sin(phi)
-        turned = np.array([c * chord[0] - s * chord[1], s * chord[0] + c * chord[1]])
-        moves += [x + t * turned for t in STEPS]
-    cand = np.array(moves)
+    """Positions ``(k, 2)`` x + t R(φ) chord strictly inside the box, φ in ``angles``
+    (φ-major, t in :data:`STEPS` ascending)."""
+    c, s = _rotations(angles)
+    turned = np.column_stack([c * chord[0] - s * chord[1], s * chord[0] + c * chord[1]])
+    steps = np.array(STEPS)[:, None]
+    cand = (x + steps * turned[:, None, :]).reshape(-1, 2)  # (φ, t, 2)
     return cand[field.inside(cand)]
+
+
+@lru_cache(maxsize=8)
+def _rotations(angles: tuple[float, ...]) -> tuple[NDArray, NDArray]:
+    """cos φ and sin φ ``(a,)`` of ``angles`` (cached; do not modify).
+
+    >>> [round(float(v), 12) for v in np.concatenate(_rotations((0.0, np.pi / 2)))]
+    [1.0, 0.0, 0.0, 1.0]
+    """
+    return np.array([np.cos(a) for a in angles]), np.array([np.sin(a) for a in angles])
 
 
 def _star_nodes(base: NDArray, slots: NDArray, x: NDArray, mids: NDArray) -> NDArray:
@@ -674,7 +683,11 @@ def _screen_compiled(
     rule: _Rule,
 ) -> tuple[NDArray, NDArray, NDArray]:
     """:func:`_screen_numpy`'s measures in one compiled call
-    (:func:`curvimesh.kernels.screen_moves`), one candidate after the other."""
+    (:func:`curvimesh.kernels.screen_moves`), one candidate after the other, but only
+    those the screen needs: ``worst`` is −inf where a candidate cannot be among the
+    :data:`SCREEN` best (its worst quality at most the rule's, or it is beaten by
+    :data:`SCREEN` candidates before it), and a row of ``new_len`` is complete where
+    ``ok`` holds. :func:`_screened` picks the same candidates from either."""
     k, j = len(cand), len(others)
     cm = field.kernel
     ok = np.zeros(k, dtype=bool)
@@ -689,7 +702,7 @@ def _screen_compiled(
         np.ascontiguousarray(alpha), state.pts[mesh.triangles[star.tris]],
         np.ascontiguousarray(star.slots), state.length[mesh.tri_edges[star.tris]],
         t, w, shape, du, dv, aw, gu, gv, VALID_RTOL, rule.shortest, rule.longest,
-        ok, new_len, worst,
+        rule.q_min, rule.push, SCREEN, ok, new_len, worst,
     )  # fmt: skip
     return ok, new_len, worst
 

@@ -270,11 +270,14 @@ def test_a_try_that_found_nothing_is_not_made_again(monkeypatch):
     assert len(calls) > with_memo
 
 
-def test_the_compiled_screen_measures_what_the_numpy_one_does():
+def test_the_compiled_screen_picks_what_the_full_numpy_measure_picks():
     # the stars of the toy mesh's triangles below 0.8 (without shifts), each vertex's
     # candidates of a quality move and positions far out (inverted stars, edges out of
-    # bounds): the same verdicts, the same lengths bit for bit (one length kernel), the
-    # same worst qualities
+    # bounds), under the plain rule and with each incident edge pushed: the same
+    # verdicts, the same lengths bit for bit where valid (one length kernel), the same
+    # worst qualities where the compiled screen measured them, and the same SCREEN
+    # candidates picked; the compiled screen leaves out candidates that the numpy one
+    # measured above the rule's quality (beaten by SCREEN before them)
     fld = load_metric(METRICS / "toy.yaml")
     opt = pipeline.AdaptOptions(shift=False, remove=False, repeat=False, bend=False)
     mesh = pipeline.adapt(fld, opt).mesh
@@ -282,7 +285,7 @@ def test_the_compiled_screen_measures_what_the_numpy_one_does():
     ln = lengths(fld, mesh)
     q = quality_from(metric_areas(fld, p[mesh.triangles]), ln[mesh.tri_edges])
     state = shift._State(mesh, shift._Incidence.of(mesh), p, ln, q, mesh.boundary_vertices)
-    checked = valid = 0
+    checked = valid = picked = skipped = 0
     for t in np.flatnonzero(q < 0.8)[:12]:
         for v in mesh.triangles[t, :3]:
             if state.fixed[v]:
@@ -298,17 +301,72 @@ def test_the_compiled_screen_measures_what_the_numpy_one_does():
                     p[v] + np.outer([1.5, 3.0, -1.0], away),
                 ]
             )
-            rule = shift._Rule.for_quality(ln[star.edges], float(q[star.tris].min()), (0.7, 1.4))
-            ok_n, len_n, worst_n = shift._screen_numpy(fld, state, star, cand, others, alpha, rule)
-            ok_c, len_c, worst_c = shift._screen_compiled(
-                fld, state, star, cand, others, alpha, rule
-            )
-            np.testing.assert_array_equal(ok_c, ok_n)
-            np.testing.assert_array_equal(len_c, len_n)
-            np.testing.assert_allclose(worst_c[ok_c], worst_n[ok_n], rtol=1e-13)
-            checked += len(cand)
-            valid += int(ok_n.sum())
-    assert checked > 300 and 0 < valid < checked
+            worst_now = float(q[star.tris].min())
+            for push in range(-1, len(star.edges)):
+                rule = shift._Rule.for_quality(ln[star.edges], worst_now, (0.7, 1.4), push=push)
+                ok_n, len_n, worst_n = shift._screen_numpy(
+                    fld, state, star, cand, others, alpha, rule
+                )
+                ok_c, len_c, worst_c = shift._screen_compiled(
+                    fld, state, star, cand, others, alpha, rule
+                )
+                np.testing.assert_array_equal(ok_c, ok_n)
+                np.testing.assert_array_equal(len_c[ok_c], len_n[ok_n])
+                measured = np.isfinite(worst_c)
+                assert not (measured & ~ok_c).any()
+                np.testing.assert_allclose(worst_c[measured], worst_n[measured], rtol=1e-13)
+                # the picks of the full measure, as _screened makes them
+                rows = np.flatnonzero(ok_n & (worst_n > rule.q_min))
+                best = rows[np.lexsort((rows, rule.scores(len_n[rows], worst_n[rows])))]
+                best = best[: shift.SCREEN]
+                np.testing.assert_array_equal(
+                    shift._screened(fld, state, star, int(v), cand, rule), cand[best]
+                )
+                assert measured[best].all()
+                checked += len(cand)
+                valid += int(ok_n.sum())
+                picked += len(best)
+                skipped += int((ok_n & (worst_n > rule.q_min) & ~measured).sum())
+    assert checked > 1000 and 0 < valid < checked
+    assert picked > 200 and skipped > 400
+
+
+def test_candidates_are_the_turned_steps_along_the_chord():
+    # x + t R(φ) c for c = (2, 0): R(φ) c = 2 (cos φ, sin φ); φ-major, t ascending, and
+    # those outside the box (x = 6.4 + 0.5 t at φ = 0 beyond t = 0.2) left out
+    fld = load_metric_text(EUCLID)
+    x, chord = np.array([1.0, 3.0]), np.array([2.0, 0.0])
+    cand = shift._candidates(fld, x, chord, (0.0, 1.0, np.pi))
+    steps = np.array(shift.STEPS)
+    want = np.vstack(
+        [
+            np.column_stack([1.0 + 2 * steps * np.cos(phi), 3.0 + 2 * steps * np.sin(phi)])
+            for phi in (0.0, 1.0, np.pi)
+        ]
+    )
+    np.testing.assert_allclose(cand, want, rtol=0, atol=1e-15)
+    edge = shift._candidates(fld, np.array([6.4, 3.0]), np.array([0.5, 0.0]), (0.0,))
+    np.testing.assert_allclose(edge[:, 0], 6.4 + 0.5 * steps[steps < 0.2])
+
+
+def test_a_stars_slots_mark_the_vertex_and_its_edges_nodes():
+    # the middle vertex of the lattice: six triangles, six edges; each triangle holds v
+    # at one corner (slot -1) and the nodes of two of v's edges (the edges from v to
+    # its other two corners), the third edge's node -2
+    mesh, v = lattice()
+    star = shift._star(mesh, shift._Incidence.of(mesh), v)
+    assert len(star.tris) == 6 and len(star.edges) == 6
+    tri = mesh.triangles[star.tris]
+    assert ((star.slots == -1) == (tri == v)).all()
+    for r, t in enumerate(tri):
+        for slot in range(3, 6):
+            a, b = t[slot - 3], t[(slot - 2) % 3]
+            k = star.slots[r, slot]
+            if v in (a, b):
+                assert star.others[k] == (b if a == v else a)
+                assert mesh.edge_mid[star.edges[k]] == t[slot]
+            else:
+                assert k == -2
 
 
 def test_a_budget_of_searches_stops_the_moves_and_keeps_those_made():
