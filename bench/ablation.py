@@ -1,11 +1,12 @@
 """What each optimisation beyond the paper's method adds, per metric.
 
-For every metric file, fourteen meshes, each stage added to the previous ones:
+For every metric file, fifteen meshes, each stage added to the previous ones:
 
 * ``paper``: the paper's method alone (Algorithm 1 sampling, Delaunay in
   the metric, geodesic P2 edges with backtracking, curvilinear swaps):
-  ``adapt --no-hexagons --no-cores --no-fill --no-relocate --no-intrinsic --no-insert
-  --no-split --no-recurve --no-length-swaps --no-shift --no-remove --no-repeat --no-bend``
+  ``adapt --no-hexagons --no-cores --no-fill --no-relocate --no-charts --no-intrinsic
+  --no-insert --no-split --no-recurve --no-length-swaps --no-shift --no-remove --no-repeat
+  --no-bend``
   (``--no-fit`` too, which only acts on ``interpolation`` metrics);
 * ``+ hexagons``: points sampled on a hexagonal lattice where the metric's
   frame turns slowly (:mod:`curvimesh.sampling`);
@@ -13,6 +14,9 @@ For every metric file, fourteen meshes, each stage added to the previous ones:
   (anisotropy 100 or more; :mod:`curvimesh.cores`; nothing elsewhere);
 * ``+ fill``: and gap filling of the point cloud (:mod:`curvimesh.fill`);
 * ``+ relocate``: and vertex relocation (:mod:`curvimesh.smooth`);
+* ``+ charts``: and the edges of thin curved layers flipped to the Delaunay
+  triangulation of each layer's own coordinates (:mod:`curvimesh.charts`; nothing
+  where there is no core);
 * ``+ intrinsic``: and intrinsic Delaunay flips where the metric's frame turns
   by 60° or more per unit length (:mod:`curvimesh.intrinsic`; nothing elsewhere);
 * ``+ insert``: and vertex insertion at long curved edges (:mod:`curvimesh.insert`);
@@ -35,7 +39,7 @@ For every metric file, fourteen meshes, each stage added to the previous ones:
 
 The stages are shared where they coincide (four samplings: the paper's,
 with hexagons, and cores, and filling; one curving of each and of the
-relocated triangulation), which gives the same meshes as fourteen separate
+relocated triangulation), which gives the same meshes as fifteen separate
 ``adapt`` runs. Every figure is from the
 report of SPEC section 4 (:func:`curvimesh.report.mesh_report`); seconds
 are the adaptation alone, for the whole pipeline of each row.
@@ -97,7 +101,7 @@ def _row(fld, stage: str, mesh, seconds: float, area: float) -> dict:
 
 
 def ablate(metric_path: str, seed: int = 0) -> dict:
-    """The fourteen rows of one metric file (see the module docstring)."""
+    """The fifteen rows of one metric file (see the module docstring)."""
     fld = load_metric(metric_path)
     pipeline.check_size(fld, pipeline.MAX_VERTICES)
     area = density_integral(fld)  # the report's metric area, computed once
@@ -127,7 +131,7 @@ def ablate(metric_path: str, seed: int = 0) -> dict:
 
 
 def table(results: list[dict]) -> str:
-    """The markdown table of all metrics, fourteen rows each."""
+    """The markdown table of all metrics, fifteen rows each."""
     head = (
         "| metric | stages | vertices | triangles | length min | length max | in [0.7, 1.4] "
         "| quality min | quality mean | valid | efficiency | seconds |\n"

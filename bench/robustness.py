@@ -1,7 +1,7 @@
 """The unit-mesh targets on metrics the method was not tuned on, at several seeds.
 
 Runs ``curvimesh batch`` (the command line, as a user would) over the metric
-files of ``bench/robustness/`` (70 fields of the kinds of issue 7: constant
+files of ``bench/robustness/`` (75 fields of the kinds of issue 7: constant
 anisotropic fields at other angles, wall layers of 500:1 to 10,000:1, tilted,
 circular and elliptic layers (up to 5,000:1), concentric circles with a singular
 centre, curved fronts, variable isotropic sizes, intersections, a swirl, a shock, a

@@ -20,6 +20,7 @@ from curvimesh import curve as _curve
 from curvimesh import swap as _swap
 from curvimesh.bend import bend_nodes
 from curvimesh.boundary import discretize_box
+from curvimesh.charts import chart_flips
 from curvimesh.errors import InputError
 from curvimesh.fill import fill_gaps
 from curvimesh.fit import fit_nodes
@@ -59,6 +60,7 @@ class AdaptOptions:
     fill: bool = True
     straight: bool = False
     relocate: bool = True
+    charts: bool = True
     intrinsic: bool = True
     insert: bool = True
     split: bool = True
@@ -80,6 +82,7 @@ STAGES = (
     "cores",
     "fill",
     "relocate",
+    "charts",
     "intrinsic",
     "insert",
     "split",
@@ -202,6 +205,7 @@ class SwapStage:
     shifted: int = 0
     removed: int = 0
     flips: int = 0
+    chart_edges: int = 0
     passes: int = 0
     searched: int = 0
     defects: Defects | None = None  # the final mesh's, when the repeated passes measured them
@@ -211,7 +215,7 @@ class SwapStage:
     def counts(self) -> str:
         """What the stage did, in one line."""
         return (
-            f"{self.flips} intrinsic flips, "
+            f"{self.chart_edges} edges flipped in layer charts, {self.flips} intrinsic flips, "
             f"{self.swaps} swaps in {self.rounds} rounds, {self.inserted} insertions, "
             f"{self.splits} splits, {self.recurved} re-curved nodes, {self.shifted} shifts, "
             f"{self.removed} removals, {self.passes} repeated passes, "
@@ -280,7 +284,10 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
     where it succeeded (the longest edge of quartic, seed 1, 1.70 → 1.99).
     """
     opt = options or AdaptOptions()
-    flips = 0
+    flips = chart_edges = 0
+    if opt.charts and not opt.straight:
+        cr = chart_flips(fld, mesh)
+        mesh, chart_edges = cr.mesh, cr.edges
     if opt.intrinsic and not opt.straight:
         fl = intrinsic_flips(fld, mesh)
         mesh, flips = fl.mesh, fl.flips
@@ -311,7 +318,8 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
     if fitted:
         found = None
     return SwapStage(
-        mesh, fitted=fitted, bent=bent, flips=flips, passes=passes, defects=found,
+        mesh, fitted=fitted, bent=bent, flips=flips, chart_edges=chart_edges, passes=passes,
+        defects=found,
         unit_defects=unit, **vars(tally),
     )  # fmt: skip
 

@@ -287,6 +287,10 @@ STAGE_HELP = {
     ),
     "fill": "No gap filling after Algorithm 1.",
     "relocate": "No vertex relocation.",
+    "charts": (
+        "No edges of thin curved layers flipped to the Delaunay triangulation of each "
+        "layer's own coordinates (along its core, metric length across)."
+    ),
     "intrinsic": (
         "No intrinsic Delaunay flips (on curved edge lengths) where the metric's directions "
         "turn 60 degrees or more per unit length."
@@ -587,17 +591,18 @@ def adapt(
 
     The stages beyond the paper's method (a hexagonal lattice of sampled
     points where the metric's directions turn slowly, sampling from the cores of thin
-    curved layers first, gap filling, vertex relocation,
+    curved layers first, gap filling, vertex relocation, flips of the edges of thin
+    curved layers to the Delaunay triangulation of each layer's own coordinates,
     intrinsic flips where the metric's directions turn fast, vertex insertion,
     edge splits, re-curving, swaps for lengths, vertex shifts, vertex removals,
     repeated passes of these where defects remain, edge nodes bent for quality, and
     for an interpolation metric edge nodes fitted to its function) run by default;
-    --no-hexagons, --no-cores, --no-fill, --no-relocate, --no-intrinsic, --no-insert,
-    --no-split, --no-recurve, --no-length-swaps, --no-shift, --no-remove, --no-repeat,
-    --no-bend and --no-fit turn them off, so that the paper's method alone is
-    `--no-hexagons --no-cores --no-fill --no-relocate --no-intrinsic --no-insert
-    --no-split --no-recurve --no-length-swaps --no-shift --no-remove --no-repeat
-    --no-bend --no-fit`. When an
+    --no-hexagons, --no-cores, --no-fill, --no-relocate, --no-charts, --no-intrinsic,
+    --no-insert, --no-split, --no-recurve, --no-length-swaps, --no-shift, --no-remove,
+    --no-repeat, --no-bend and --no-fit turn them off, so that the paper's method alone
+    is `--no-hexagons --no-cores --no-fill --no-relocate --no-charts --no-intrinsic
+    --no-insert --no-split --no-recurve --no-length-swaps --no-shift --no-remove
+    --no-repeat --no-bend --no-fit`. When an
     edge longer than 1.5 is left, all stages run again with the hexagonal lattice kept
     out of thin curved layers (--max-sag 0.5), then, if one is still left, without the
     lattice, then these three with the sampling seeds --seed + 1000, + 2000 and + 3000

@@ -173,7 +173,7 @@ def trace(field: MetricField, start: NDArray) -> tuple[NDArray, bool]:
     return np.array([*ways[1][::-1], start, *ways[0]]), False
 
 
-def _arc_lengths(field: MetricField, line: NDArray) -> NDArray:
+def arc_lengths(field: MetricField, line: NDArray) -> NDArray:
     """Metric length from the first point to each point of a polyline (chords
     measured in the metric at their middles)."""
     d = np.diff(line, axis=0)
@@ -181,7 +181,7 @@ def _arc_lengths(field: MetricField, line: NDArray) -> NDArray:
     return np.concatenate([[0.0], np.cumsum(np.sqrt(np.einsum("pi,pij,pj->p", d, g, d)))])
 
 
-def _points_at(field: MetricField, line: NDArray, arc: NDArray, s: NDArray) -> NDArray:
+def points_on_core(field: MetricField, line: NDArray, arc: NDArray, s: NDArray) -> NDArray:
     """The points of the core at arc lengths ``s``: on the polyline, then projected
     on the core (a chord of the polyline strays from a curved core)."""
     pts = np.column_stack([np.interp(s, arc, line[:, 0]), np.interp(s, arc, line[:, 1])])
@@ -212,15 +212,15 @@ def place(field: MetricField, line: NDArray, closed: bool, spacing: float) -> ND
     """
     if closed:
         line = np.vstack([line, line[:1]])
-    arc = _arc_lengths(field, line)
+    arc = arc_lengths(field, line)
     total = arc[-1]
-    s, pts, walked = 0.0, [_points_at(field, line, arc, np.zeros(1))[0]], [0.0]
+    s, pts, walked = 0.0, [points_on_core(field, line, arc, np.zeros(1))[0]], [0.0]
     while True:
         cand = s + spacing * _TRIAL
         cand = cand[cand <= total]
         if len(cand) == 0:
             break
-        ends = _points_at(field, line, arc, cand)
+        ends = points_on_core(field, line, arc, cand)
         starts = np.repeat(pts[-1][None], len(cand), axis=0)
         length = shortest_parabola(field, starts, ends, exact_length=False, remember=False).length
         hit = np.flatnonzero(length >= spacing)
@@ -230,7 +230,7 @@ def place(field: MetricField, line: NDArray, closed: bool, spacing: float) -> ND
         if k > 0:  # between the last two trials, where the parabola is ``spacing``
             t = (spacing - length[k - 1]) / (length[k] - length[k - 1])
             s = cand[k - 1] + t * (cand[k] - cand[k - 1])
-            pts.append(_points_at(field, line, arc, np.array([s]))[0])
+            pts.append(points_on_core(field, line, arc, np.array([s]))[0])
         else:
             s = cand[0]
             pts.append(ends[0])
@@ -242,34 +242,46 @@ def place(field: MetricField, line: NDArray, closed: bool, spacing: float) -> ND
     if total - w[-1] < 0.5 * mean:
         w = w[:-1]
         mean = w[-1] / (len(w) - 1)
-    return _points_at(field, line, arc, w * (total / (w[-1] + mean)))
+    return points_on_core(field, line, arc, w * (total / (w[-1] + mean)))
 
 
-#: Points of the cores by field and spacing (dropped with the field): every run of
-#: :func:`curvimesh.adapt.adapt` samples the same field again.
+#: The traced cores of each field (dropped with the field), and their points by
+#: spacing: every run of :func:`curvimesh.adapt.adapt` samples the same field again.
+_LINES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 _CORES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def layer_core_points(field: MetricField, spacing: float) -> NDArray:
-    """Points ``(k, 2)`` along the cores of the field's thin curved layers
-    (:func:`place`), thinnest core first; ``(0, 2)`` where there are none.
+def layer_cores(field: MetricField) -> list[tuple[NDArray, bool]]:
+    """The cores of the field's thin curved layers, thinnest first: each a polyline
+    ``(m, 2)`` (:func:`trace`) and whether it closes; an empty list where there are none.
 
-    The thinnest start (:func:`core_starts`) is traced (:func:`trace`), the starts
-    within a trace step of its polyline are dropped, and so on, for at most
-    :data:`MAX_CORES` cores.
+    The thinnest start (:func:`core_starts`) is traced, the starts within a trace
+    step of its polyline are dropped, and so on, for at most :data:`MAX_CORES`
+    cores. A trace of fewer than three points is no core.
     """
-    per_field = _CORES.setdefault(field, {})
-    if spacing in per_field:
-        return per_field[spacing].copy()
+    if field in _LINES:
+        return list(_LINES[field])
     starts = core_starts(field)
     reach = TRACE_STEP * frames(field, starts)[1]
     out = []
     while len(starts) and len(out) < MAX_CORES:
         line, closed = trace(field, starts[0])
         if len(line) >= 3:
-            out.append(place(field, line, closed, spacing))
+            out.append((line, closed))
         far = cKDTree(line).query(starts)[0] > reach
         far[0] = False
         starts, reach = starts[far], reach[far]
+    _LINES[field] = tuple(out)
+    return list(out)
+
+
+def layer_core_points(field: MetricField, spacing: float) -> NDArray:
+    """Points ``(k, 2)`` along the cores of the field's thin curved layers
+    (:func:`layer_cores`, each laid by :func:`place`), thinnest core first; ``(0, 2)`` where
+    there are none."""
+    per_field = _CORES.setdefault(field, {})
+    if spacing in per_field:
+        return per_field[spacing].copy()
+    out = [place(field, line, closed, spacing) for line, closed in layer_cores(field)]
     per_field[spacing] = np.concatenate(out) if out else np.zeros((0, 2))
     return per_field[spacing].copy()

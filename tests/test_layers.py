@@ -45,6 +45,7 @@ LAYERS = {
     "shift": 8,
     "remove": 8,
     "intrinsic": 8,
+    "charts": 8,
     "bend": 8,
     "adapt": 9,
     "batch": 10,

@@ -1,0 +1,513 @@
+"""Thin curved layers triangulated in their own coordinates (beyond the paper).
+
+Across a thin layer that curves, the chord between two neighbours along a row of
+points strays many rows off the row (a unit chord of a 2,000:1 layer about an
+ellipse, radius of curvature 0.31 and long size 0.1, strays 0.004: 80 of its
+short sizes at the core). The Delaunay triangulation of the points, straight-sided
+even in the metric (:func:`curvimesh.triangulate.metric_delaunay`), then joins
+points several columns apart, in fans, and the curving stage straightens the
+edges whose parabolas would fold a triangle: chords many rows long. The
+curvilinear swaps of the paper do not undo them: every swap on the way is
+invalid or lowers the quality.
+
+Each core of such a layer (:func:`curvimesh.cores.layer_cores`) gives the layer a
+chart: a point p near the core has the coordinates (s, n), s the metric length
+along the core of its foot f (the nearest point of a cubic spline through the
+core) and n the signed metric length of the segment from f to p (positive on the
+core's left). The rows of the layer are the lines n = const of the chart and its
+columns, shot across the layer, the lines s = const, near enough: the chart
+straightens the layer. The points of a layer are those where a unit chord along
+it strays at least :data:`curvimesh.cores.CORE_MIN_SAG` short sizes
+(:func:`curvimesh.metric.layer_sag`), near a core. The stage
+
+1. flips the edges among them towards the Delaunay triangulation of their chart
+   coordinates (:func:`lawson_flips`: Lawson's flips, as
+   :func:`curvimesh.triangulate.metric_delaunay` in the plane, folds first) and
+   gives the edges of the new triangles the middle node that is the image of the
+   edge's middle in the chart (:func:`from_chart`), or, where that leaves a
+   triangle invalid, the shortest parabola's. The triangles are then the images
+   of straight triangles of the chart, which bend as the layer does, valid where
+   the map is smooth on their scale though their straight-sided twins fold.
+   Where a triangle is still invalid (decided exactly), its corners are taken out
+   of the layer and the flips are made again from the input (:func:`flipped`);
+2. moves the middle nodes of the layer's edges to their chart nodes where that
+   shortens them, all together, then back on the edges of the triangles left
+   invalid, until none is (:func:`renode`).
+
+The result is valid: with no point left in a layer, the input. On
+``bench/robustness/u58`` (2,000:1 about an ellipse; 1,698 of its 4,099 points in
+the layer), after the curving stage: the layer's edges over 1.5 fall from 2,852
+to 1,997 (of 4,905), 1,041 edges flipped and 392 nodes moved, in 2.2 s. A P2
+edge cannot follow such a layer closely: at the ellipse's ends a unit edge along
+a row strays 0.25 – 0.7 short sizes from it at its quarter points (the middle
+node on the row), and the chart's triangles there, one row thick, fold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.interpolate import CubicSpline
+from scipy.spatial import cKDTree
+
+from curvimesh.bezier import valid_exact
+from curvimesh.cores import CORE_MIN_SAG, arc_lengths, layer_cores, points_on_core
+from curvimesh.curve import assemble_p2, boundary_edge_mask
+from curvimesh.freenode import shortest_parabola
+from curvimesh.mesh import Mesh, apply_flips, flip_candidates, independent_flips, p1_of
+from curvimesh.metric import MetricField, eigen_frame, layer_sag
+from curvimesh.quality import edge_lengths_fast
+
+#: Gauss–Legendre rule of the chart's metric lengths across the layer: 5 nodes on each
+#: piece of the segment between its fractions 0, 2⁻¹⁰, 2⁻⁹, …, 1/2, 1. The size is least
+#: at the core (the segment's start) and grows across it, by 1,800 over the chart of a
+#: 1,000:1 ring: pieces graded towards the start keep the integrand within a factor of
+#: about 2 on each (1e-8 relative on that ring; equal quarters: 2e-4).
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(5)
+_CUTS = np.concatenate([[0.0], 2.0 ** np.arange(-10, 1)])
+_T = (_CUTS[:-1, None] + np.diff(_CUTS)[:, None] * 0.5 * (_GL_X[None] + 1.0)).ravel()
+_W = (np.diff(_CUTS)[:, None] * 0.5 * _GL_W[None]).ravel()
+#: Most rounds of flips; most times the stage is made again without the corners
+#: of invalid triangles.
+MAX_ROUNDS = 200
+MAX_TRIES = 8
+#: Bisection steps of :func:`from_chart`: the offset to 2⁻²⁶ of its bracket, within
+#: twice the offset (a thousandth of the short size at 60,000 of them).
+BISECTIONS = 26
+
+
+@dataclass(frozen=True)
+class Chart:
+    """A core as a smooth curve: the cubic spline ``curve`` c(u) through its traced
+    points (periodic around a closed core; u the chord length along the polyline,
+    from 0 to ``span``), and the metric length ``arc`` along it at the parameters
+    ``u`` of a fine table (:data:`TABLE_STEPS` per polyline segment)."""
+
+    curve: CubicSpline
+    span: float
+    closed: bool
+    u: NDArray
+    arc: NDArray
+
+    @property
+    def length(self) -> float:
+        """The core's metric length."""
+        return float(self.arc[-1])
+
+
+#: Steps of a chart's table of arc lengths per segment of the traced polyline.
+TABLE_STEPS = 16
+#: Newton steps of a foot's parameter (from the nearest point of the table).
+FOOT_STEPS = 4
+
+
+def chart_of(field: MetricField, line: NDArray, closed: bool) -> Chart:
+    """The chart of a traced core (:func:`curvimesh.cores.trace`).
+
+    The polyline's chords stray from a curved core (a step of a quarter long size
+    about a radius of curvature R strays h_max² / (128 R): 5 short sizes of a 2,000:1
+    layer about an ellipse), so the chart follows the cubic spline through points
+    of the core laid evenly along the polyline, twice as many as it has
+    (:func:`curvimesh.cores.place`'s projection). Along it the metric length is
+    measured in the long size, |c′(u)| sqrt(λ_min(g)) (the core runs along the long
+    direction), integrated by the trapezoidal rule on the table: the full
+    sqrt(c′ᵀ g c′) would count the spline's tangent error ε as (h_max / h_min) ε,
+    2.5e-5 of the length of a 1,000:1 ring from its tangents' 1e-5.
+    """
+    pts = np.asarray(line, dtype=float)
+    if closed:
+        pts = np.vstack([pts, pts[:1]])
+    # twice as many points, evenly along it (a closed trace's last step can be 1.6
+    # steps long), projected on the core
+    arc = arc_lengths(field, pts)
+    pts = points_on_core(field, pts, arc, np.linspace(0.0, arc[-1], 2 * len(pts) - 1))
+    if closed:
+        pts[-1] = pts[0]
+    step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    keep = np.concatenate([[True], step > 1e-12 * step.sum()])  # the spline's u must grow
+    if closed:
+        keep[-1] = True
+        keep[-2] = keep[-2] and step[-1] > 1e-12 * step.sum()
+    pts = pts[keep]
+    u = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    curve = CubicSpline(u, pts, bc_type="periodic" if closed else "not-a-knot")
+    table = np.linspace(0.0, u[-1], TABLE_STEPS * (len(u) - 1) + 1)
+    m, r, _, _ = eigen_frame(field.tensor(curve(table), check=False))
+    speed = np.linalg.norm(curve(table, 1), axis=1) * np.sqrt(np.maximum(m - r, 0.0))
+    arc = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * np.diff(table))])
+    return Chart(curve, float(u[-1]), closed, table, arc)
+
+
+def segment_lengths(field: MetricField, a: NDArray, b: NDArray) -> NDArray:
+    """Metric lengths ``(k,)`` of the straight segments a → b ``(k, 2)``:
+    ∫₀¹ sqrt(dᵀ g(a + t d) d) dt, d = b − a, by the graded Gauss–Legendre rule of
+    :data:`_T`, :data:`_W`."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    d = b - a
+    x = a[:, None, :] + _T[None, :, None] * d[:, None, :]
+    g = field.tensor(x.reshape(-1, 2), check=False).reshape(len(a), len(_T), 2, 2)
+    return np.sqrt(np.einsum("ki,ktij,kj->kt", d, g, d)) @ _W
+
+
+def _wrap(chart: Chart, u: NDArray) -> NDArray:
+    """Parameters brought into [0, span]: modulo the span around a closed core, clipped
+    at an open core's ends."""
+    return np.mod(u, chart.span) if chart.closed else np.clip(u, 0.0, chart.span)
+
+
+def _feet(chart: Chart, pts: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """For each point p ``(k, 2)``: the parameter u of its foot (the nearest point of the
+    curve: (c(u) − p) · c′(u) = 0 by Newton's method from the nearest point of the
+    table), whether it lies inside the curve (not at an open core's end), and the
+    Euclidean distance |p − c(u)|."""
+    pts = np.asarray(pts, dtype=float)
+    u = chart.u[cKDTree(chart.curve(chart.u)).query(pts)[1]]
+    for _ in range(FOOT_STEPS):
+        r = chart.curve(u) - pts
+        d1, d2 = chart.curve(u, 1), chart.curve(u, 2)
+        f = np.einsum("ki,ki->k", r, d1)
+        df = np.einsum("ki,ki->k", d1, d1) + np.einsum("ki,ki->k", r, d2)
+        step = np.where(df > 0, f / np.where(df > 0, df, 1.0), 0.0)
+        u = _wrap(chart, u - step)
+    inside = chart.closed | ((u > 0.0) & (u < chart.span))
+    return u, inside, np.linalg.norm(pts - chart.curve(u), axis=1)
+
+
+def _left_normals(chart: Chart, u: NDArray) -> NDArray:
+    """The unit normals ``(k, 2)`` on the left of the curve at parameters u."""
+    d = chart.curve(u, 1)
+    d = d / np.linalg.norm(d, axis=1)[:, None]
+    return np.column_stack([-d[:, 1], d[:, 0]])
+
+
+def to_chart(field: MetricField, chart: Chart, pts: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """Chart coordinates s, n ``(k,)`` of points ``(k, 2)`` (module docstring), and
+    whether each foot lies inside the curve (not at an open core's end)."""
+    pts = np.asarray(pts, dtype=float)
+    u, inside, _ = _feet(chart, pts)
+    foot = chart.curve(u)
+    s = np.interp(u, chart.u, chart.arc)
+    side = np.where(np.einsum("ki,ki->k", pts - foot, _left_normals(chart, u)) < 0, -1.0, 1.0)
+    return s, side * segment_lengths(field, foot, pts), inside
+
+
+def from_chart(field: MetricField, chart: Chart, s: NDArray, n: NDArray) -> NDArray:
+    """The points ``(k, 2)`` of chart coordinates s, n ``(k,)``: the foot at metric length
+    s along the core, then the offset along the curve's left normal whose metric
+    length is n (bisection: the length grows with the offset)."""
+    s = np.asarray(s, dtype=float)
+    n = np.asarray(n, dtype=float)
+    if chart.closed:
+        s = np.mod(s, chart.length)
+    u = np.interp(s, chart.arc, chart.u)
+    foot = chart.curve(u)
+    nu = _left_normals(chart, u) * np.where(n < 0, -1.0, 1.0)[:, None]
+    target = np.abs(n)
+    # bracket: from the offset that the foot's metric would give, doubled until past |n|
+    g = field.tensor(foot, check=False)
+    hi = target / np.sqrt(np.einsum("ki,kij,kj->k", nu, g, nu))
+    for _ in range(60):
+        short = segment_lengths(field, foot, foot + hi[:, None] * nu) < target
+        if not short.any():
+            break
+        hi = np.where(short, 2.0 * hi, hi)
+    lo = np.zeros_like(hi)
+    for _ in range(BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        below = segment_lengths(field, foot, foot + mid[:, None] * nu) < target
+        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+    return foot + (0.5 * (lo + hi))[:, None] * nu
+
+
+@dataclass(frozen=True)
+class Layers:
+    """The points of a mesh in the layers: the chart of each (``charts``), and per
+    vertex the chart it lies in (−1: none) and its coordinates s, n there."""
+
+    charts: list[Chart]
+    which: NDArray
+    s: NDArray
+    n: NDArray
+
+
+def layer_points(field: MetricField, pts: NDArray, charts: list[Chart]) -> Layers:
+    """The points ``(k, 2)`` in the layers: those where a unit chord along the layer
+    strays at least :data:`curvimesh.cores.CORE_MIN_SAG` short sizes
+    (:func:`curvimesh.metric.layer_sag`), within a long size of the nearest chart's
+    curve and with their foot inside it (not at an open core's end)."""
+    pts = np.asarray(pts, dtype=float)
+    which = np.full(len(pts), -1, dtype=np.int64)
+    s, n = np.zeros(len(pts)), np.zeros(len(pts))
+    if not charts or len(pts) == 0:
+        return Layers(charts, which, s, n)
+    g, dg = field.evaluate(pts, derivatives=True)
+    m, r, _, _ = eigen_frame(g)
+    h_max = 1.0 / np.sqrt(np.maximum(m - r, 1e-300))
+    cand = np.flatnonzero(layer_sag(g, dg) >= CORE_MIN_SAG)
+    if cand.size == 0:
+        return Layers(charts, which, s, n)
+    dist = np.stack([_feet(c, pts[cand])[2] for c in charts])
+    nearest = np.argmin(dist, axis=0)
+    close = dist[nearest, np.arange(len(cand))] <= h_max[cand]
+    for k, chart in enumerate(charts):
+        idx = cand[close & (nearest == k)]
+        if idx.size == 0:
+            continue
+        sk, nk, inside = to_chart(field, chart, pts[idx])
+        which[idx[inside]], s[idx], n[idx] = k, sk, nk
+    return Layers(charts, which, s, n)
+
+
+def _quad_coordinates(layers: Layers, quads: NDArray) -> NDArray:
+    """Chart coordinates ``(k, 4, 2)`` of quads ``(k, 4)`` of points of one chart each,
+    s unwrapped around a closed core (measured from the first corner's)."""
+    s, n = layers.s[quads], layers.n[quads]
+    for k, chart in enumerate(layers.charts):
+        on = layers.which[quads[:, 0]] == k
+        if chart.closed and on.any():
+            length = chart.length
+            s0 = s[on, :1]
+            s[on] = s0 + np.mod(s[on] - s0 + 0.5 * length, length) - 0.5 * length
+    return np.stack([s, n], axis=-1)
+
+
+def _orient(p: NDArray, q: NDArray, r: NDArray) -> NDArray:
+    """Twice the signed area of triangles (p, q, r), each ``(k, 2)``."""
+    return (q[:, 0] - p[:, 0]) * (r[:, 1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (r[:, 0] - p[:, 0])
+
+
+def _in_circle(a: NDArray, b: NDArray, c: NDArray, d: NDArray) -> NDArray:
+    """The in-circle determinant of d against counter-clockwise (a, b, c), each ``(k, 2)``:
+    positive when d lies inside their circumcircle."""
+    a, b, c = a - d, b - d, c - d
+    na, nb, nc = (a**2).sum(1), (b**2).sum(1), (c**2).sum(1)
+    return (
+        a[:, 0] * (b[:, 1] * nc - nb * c[:, 1])
+        - a[:, 1] * (b[:, 0] * nc - nb * c[:, 0])
+        + na * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
+    )
+
+
+def lawson_flips(
+    layers: Layers, p1: Mesh, in_layer: NDArray, max_rounds: int = MAX_ROUNDS
+) -> NDArray:
+    """Corners ``(m, 3)`` of ``p1`` after Lawson flips towards the Delaunay triangulation
+    of the chart coordinates, made where the quad's four corners are ``in_layer`` ``(n,)``
+    points of one chart and it is convex in the chart: the edge a-b of the quad
+    a-d-b-c is flipped to c-d when d lies inside the chart circumcircle of (a, b, c)
+    (beyond 1e-10 of the squared scale, as :func:`curvimesh.triangulate.metric_delaunay`).
+    Rounds of non-conflicting flips, by decreasing violation."""
+    pts = np.asarray(p1.points)
+    out = np.array(p1.corners, dtype=np.int64)
+    inner = in_layer[out].all(axis=1)  # the flips stay among these triangles
+    tris = out[inner]
+    for _ in range(max_rounds):
+        _, t1, t2, a, b, c, d = flip_candidates(Mesh(pts, tris))
+        quads = np.column_stack([a, b, c, d])
+        which = layers.which[quads]
+        idx = np.flatnonzero((which == which[:, :1]).all(axis=1))
+        if idx.size == 0:
+            break
+        xy = _quad_coordinates(layers, quads[idx])
+        pa, pb, pc, pd = xy[:, 0], xy[:, 1], xy[:, 2], xy[:, 3]
+        det = _in_circle(pa, pb, pc, pd)
+        scale = ((pa - pd) ** 2).sum(1)
+        convex = (_orient(pa, pd, pc) > 0) & (_orient(pd, pb, pc) > 0)
+        # a fold (a triangle inverted in the chart) is undone first, whatever the circles
+        folded = (_orient(pa, pb, pc) <= 0) | (_orient(pb, pa, pd) <= 0)
+        viol = convex & (folded | (det > 1e-10 * scale**2))
+        cand = idx[viol]
+        if cand.size == 0:
+            break
+        priority = np.where(folded[viol], np.inf, det[viol] / scale[viol] ** 2)
+        chosen = cand[independent_flips(t1[cand], t2[cand], priority, len(tris))]
+        tris = apply_flips(tris, chosen, t1, t2, a, b, c, d)
+    out[inner] = tris
+    return out
+
+
+def _chart_nodes(field: MetricField, layers: Layers, pts: NDArray, edges: NDArray) -> NDArray:
+    """Middle nodes ``(k, 2)`` of edges ``(k, 2)`` between points of one chart: the images
+    of the middles of the edges in the chart (:func:`from_chart`)."""
+    out = np.empty((len(edges), 2))
+    for k, chart in enumerate(layers.charts):
+        on = np.flatnonzero(layers.which[edges[:, 0]] == k)
+        if on.size == 0:
+            continue
+        xy = _quad_coordinates(layers, edges[on])
+        mid = xy.mean(axis=1)
+        out[on] = from_chart(field, chart, mid[:, 0], mid[:, 1])
+    return out
+
+
+def renode(field: MetricField, layers: Layers, mesh: Mesh) -> tuple[Mesh, int]:
+    """A valid P2 ``mesh`` with the middle nodes of its edges between points of one chart
+    at their chart nodes (:func:`_chart_nodes`) where that shortens the edge
+    (:func:`curvimesh.quality.edge_lengths_fast`); and how many moved. All move
+    together; then, while a triangle is invalid, its edges take their nodes back
+    (as :func:`curvimesh.curve.backtrack_to_valid`, the input's nodes the valid end).
+
+    Why together: the middle node an edge of a layer gets from the curving stage can
+    be the straight midpoint (backtracked to validity), and across a thin curved
+    layer the chord strays rows from the row it joins (on u58 an edge 1.78 long with
+    its chart node, as with its shortest parabola, is 23.8 with its midpoint). Its
+    chart node alone leaves a triangle invalid whose other edges are chords; with
+    theirs moved too, the triangle bends as the layer does."""
+    pts = np.array(mesh.points)
+    p1 = p1_of(mesh)
+    renumber = np.full(len(pts), -1, dtype=np.int64)
+    renumber[mesh.vertex_ids] = np.arange(len(mesh.vertex_ids))
+    ends = renumber[mesh.edges]
+    which = layers.which[ends]
+    cand = np.flatnonzero((which[:, 0] >= 0) & (which[:, 0] == which[:, 1]))
+    cand = cand[mesh.edge_tris[cand, 1] >= 0]  # not the box's sides
+    if cand.size == 0:
+        return mesh, 0
+    x0, x1 = pts[mesh.edges[cand, 0]], pts[mesh.edges[cand, 1]]
+    old = pts[mesh.edge_mid[cand]]
+    target = _chart_nodes(field, layers, np.asarray(p1.points), ends[cand])
+    shorter = edge_lengths_fast(field, x0, x1, target, remember=False) < edge_lengths_fast(
+        field, x0, x1, old, remember=False
+    )
+    cand, old, target = cand[shorter], old[shorter], target[shorter]
+    moved = np.ones(len(cand), dtype=bool)
+    at = np.full(len(mesh.edges), -1, dtype=np.int64)
+    at[cand] = np.arange(len(cand))
+    touched = np.unique(mesh.edge_tris[cand].ravel())
+    touched = touched[touched >= 0]
+    while moved.any():
+        pts[mesh.edge_mid[cand]] = np.where(moved[:, None], target, old)
+        bad = touched[~valid_exact(pts[mesh.triangles[touched]])]
+        back = at[mesh.tri_edges[bad].ravel()]
+        back = back[back >= 0]
+        back = back[moved[back]]
+        if back.size == 0:
+            break
+        moved[back] = False
+    pts[mesh.edge_mid[cand]] = np.where(moved[:, None], target, old)
+    return Mesh(pts, mesh.triangles, mesh.box), int(moved.sum())
+
+
+def _triangle_keys(tris: NDArray, n: int) -> NDArray:
+    """One integer per triangle ``(m, 3)`` of points numbered below n, the same for any
+    order of its corners (n < 2²¹: the key stays below 2⁶³)."""
+    t = np.sort(np.asarray(tris, dtype=np.int64), axis=1)
+    return (t[:, 0] * n + t[:, 1]) * n + t[:, 2]
+
+
+def _valid_nodes(
+    field: MetricField, layers: Layers, mesh: Mesh, mids: NDArray, renode: NDArray
+) -> tuple[NDArray, NDArray]:
+    """Middle nodes ``(E, 2)`` for the edges of a P1 ``mesh``: ``mids`` where ``renode`` is
+    False; elsewhere the chart node (:func:`_chart_nodes`), or, on the edges of the
+    triangles that it leaves invalid, the shortest parabola's
+    (:func:`curvimesh.freenode.shortest_parabola`). Returns the nodes and the
+    triangles still invalid (decided exactly)."""
+    pts = np.asarray(mesh.points)
+    edges = np.flatnonzero(renode)
+    mids = np.array(mids, dtype=float)
+    mids[edges] = _chart_nodes(field, layers, pts, mesh.edges[edges])
+    touched = np.flatnonzero(renode[mesh.tri_edges].any(axis=1))
+
+    def invalid() -> NDArray:
+        nodes = np.concatenate([pts[mesh.corners[touched]], mids[mesh.tri_edges[touched]]], axis=1)
+        return touched[~valid_exact(nodes)]
+
+    bad = invalid()
+    redo = np.unique(mesh.tri_edges[bad])
+    redo = redo[renode[redo]]
+    if redo.size == 0:
+        return mids, bad
+    a, b = pts[mesh.edges[redo, 0]], pts[mesh.edges[redo, 1]]
+    mids[redo] = shortest_parabola(field, a, b, exact_length=False).mid
+    return mids, invalid()
+
+
+@dataclass(frozen=True)
+class ChartResult:
+    """The mesh after the stage, its edges that the input did not have, the edge nodes
+    moved to their chart nodes, and how many times the flips were made."""
+
+    mesh: Mesh
+    edges: int
+    renoded: int
+    tries: int
+
+
+def chart_flips(field: MetricField, mesh: Mesh) -> ChartResult:
+    """The stage of the module docstring on a valid P2 ``mesh``: the flips
+    (:func:`flipped`), then the chart nodes of the layers' edges (:func:`renode`).
+    The result is valid and has the same vertices."""
+    cores = layer_cores(field)
+    if mesh.order != 2 or not cores or len(mesh.triangles) == 0:
+        return ChartResult(mesh, 0, 0, 0)
+    pts = np.asarray(p1_of(mesh).points)
+    layers = layer_points(field, pts, [chart_of(field, line, closed) for line, closed in cores])
+    if (layers.which >= 0).sum() < 4:
+        return ChartResult(mesh, 0, 0, 0)
+    out, edges, tries = flipped(field, layers, mesh)
+    out, moved = renode(field, layers, out)
+    return ChartResult(out, edges, moved, tries)
+
+
+def flipped(field: MetricField, layers: Layers, mesh: Mesh) -> tuple[Mesh, int, int]:
+    """A valid P2 ``mesh`` after :func:`lawson_flips` among its points in ``layers``, the
+    edges of the new triangles with their chart nodes (:func:`_valid_nodes`); its
+    edges that ``mesh`` did not have; and how many times the flips were made (the
+    corners of the triangles left invalid taken out of the layers each time). The
+    input's edge nodes stay on the edges outside the new triangles. With no flip
+    left to make, or after :data:`MAX_TRIES`, ``mesh`` itself."""
+    p1 = p1_of(mesh)
+    pts = np.asarray(p1.points)
+    in_layer = layers.which >= 0
+    # the input's edge nodes, by the sorted ends of each edge
+    renumber = np.full(len(mesh.points), -1, dtype=np.int64)
+    renumber[mesh.vertex_ids] = np.arange(len(mesh.vertex_ids))
+    ends = np.sort(renumber[mesh.edges], axis=1)
+    n = len(pts)
+    old_keys = ends[:, 0] * n + ends[:, 1]
+    order = np.argsort(old_keys)
+    old_keys, old_mids = old_keys[order], mesh.points[mesh.edge_mid][order]
+    old_tris = np.sort(_triangle_keys(p1.corners, n))
+    tries = 0
+    while tries < MAX_TRIES and in_layer.sum() >= 4:
+        tries += 1
+        tris = lawson_flips(layers, p1, in_layer)
+        cur = Mesh(pts, tris, p1.box)
+        new = ~np.isin(_triangle_keys(tris, n), old_tris, assume_unique=True)
+        if not new.any():
+            break
+        e_sorted = np.sort(cur.edges, axis=1)
+        keys = e_sorted[:, 0] * n + e_sorted[:, 1]
+        pos = np.minimum(np.searchsorted(old_keys, keys), len(old_keys) - 1)
+        known = old_keys[pos] == keys
+        mids = np.where(known[:, None], old_mids[pos], 0.0)
+        # the edges of the new triangles take their chart nodes (not the box's sides)
+        fresh = np.zeros(len(cur.edges), dtype=bool)
+        fresh[cur.tri_edges[new].ravel()] = True
+        fresh &= ~boundary_edge_mask(cur)
+        fresh |= ~known
+        mids, bad = _valid_nodes(field, layers, cur, mids, fresh)
+        if bad.size == 0:
+            return assemble_p2(pts, cur, mids), int((~known).sum()), tries
+        in_layer = in_layer.copy()
+        in_layer[tris[bad].ravel()] = False
+    return mesh, 0, tries
+
+
+__all__ = [
+    "Chart",
+    "ChartResult",
+    "Layers",
+    "chart_flips",
+    "chart_of",
+    "flipped",
+    "from_chart",
+    "lawson_flips",
+    "layer_points",
+    "renode",
+    "segment_lengths",
+    "to_chart",
+]

@@ -1,0 +1,202 @@
+"""Thin curved layers in their own coordinates: the chart against a ring's analytic
+lengths, and the flips that join a staggered lattice across a ring to its neighbours
+only."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from curvimesh import charts
+from curvimesh.adapt import SWAP_STAGES, AdaptOptions, curve, swap, triangulate
+from curvimesh.bezier import valid_exact
+from curvimesh.cores import layer_cores
+from curvimesh.mesh import Mesh, p1_of
+from curvimesh.metric import load_metric, load_metric_text
+
+METRICS = Path(__file__).resolve().parent.parent / "metrics"
+
+#: A ring of radius R about C: radial size H0 + G |r − R| (to 0.1), 0.1 round it.
+R, H0, G, C = 0.3, 1e-4, 0.25, np.array([0.5, 0.5])
+RING = f"""
+name: ring
+domain: {{box: [[0, 0], [1, 1]]}}
+definitions:
+  r: sqrt((x - {C[0]})**2 + (y - {C[1]})**2)
+metric:
+  eigen:
+    sizes: ['min({H0} + {G}*abs(r - {R}), 0.1)', 0.1]
+    angle: atan2(y - {C[1]}, x - {C[0]})
+"""
+
+
+def radial_metric_length(delta: NDArray) -> NDArray:
+    """∫₀^|δ| dr / (H0 + G r), signed: the metric length from the circle out to r = R + δ."""
+    return np.sign(delta) * np.log1p(G * np.abs(delta) / H0) / G
+
+
+def radial_offset(n: NDArray) -> NDArray:
+    """The δ whose :func:`radial_metric_length` is n."""
+    return np.sign(n) * np.expm1(G * np.abs(n)) * H0 / G
+
+
+@pytest.fixture(scope="module")
+def ring():
+    fld = load_metric_text(RING)
+    (line, closed), *rest = layer_cores(fld)
+    assert closed and not rest
+    return fld, charts.chart_of(fld, line, closed)
+
+
+def test_the_chart_of_a_ring_measures_arcs_round_it_and_metric_lengths_across(ring):
+    fld, chart = ring
+    # round the circle, 0.1 long sizes: 2π R / 0.1
+    assert chart.length == pytest.approx(2 * math.pi * R / 0.1, rel=1e-6)
+    theta = np.linspace(0.1, 6.0, 9)
+    delta = np.array([-8e-3, -1e-3, -2e-4, -1e-5, 0.0, 1e-5, 3e-4, 2e-3, 9e-3])
+    pts = C + (R + delta)[:, None] * np.column_stack([np.cos(theta), np.sin(theta)])
+    s, n, inside = charts.to_chart(fld, chart, pts)
+    assert inside.all()
+    # the feet lie on the radii: s grows as R θ / 0.1 (either way round)
+    ds = np.mod(np.diff(s), chart.length)
+    if ds[0] > chart.length / 2:  # traced clockwise
+        ds = chart.length - ds
+    np.testing.assert_allclose(ds, R * np.diff(theta) / 0.1, rtol=1e-6)
+    # across, the metric length of the radial segment, the sign telling the sides apart;
+    # the traced core lies on the circle to about 3e-8 (its line searches' precision),
+    # 3e-4 of the radial size there
+    side = np.sign(n[-1])
+    np.testing.assert_allclose(side * n, radial_metric_length(delta), rtol=1e-6, atol=5e-4)
+
+
+def test_from_chart_inverts_to_chart(ring):
+    fld, chart = ring
+    rng = np.random.default_rng(3)
+    theta = rng.uniform(0, 2 * math.pi, 50)
+    delta = radial_offset(rng.uniform(-20, 20, 50))
+    pts = C + (R + delta)[:, None] * np.column_stack([np.cos(theta), np.sin(theta)])
+    s, n, _ = charts.to_chart(fld, chart, pts)
+    back = charts.from_chart(fld, chart, s, n)
+    # to a thousandth of the least radial size
+    np.testing.assert_allclose(back, pts, rtol=0, atol=1e-7)
+
+
+def lattice(columns: int, rows: int, stagger: bool = False) -> NDArray:
+    """Points (columns × (2 rows + 1), 2) of a polar lattice across the ring: the columns
+    evenly round it, the rows a unit of metric length apart across it; then the centre
+    and eight points half way to the ring, and the box's corners and sides a unit long
+    size apart."""
+    i = np.arange(-rows, rows + 1)
+    theta = 2 * math.pi * (np.arange(columns)[:, None] + 0.25 + 0.5 * stagger * (i % 2)) / columns
+    rad = R + radial_offset(i.astype(float))
+    pts = C + rad[None, :, None] * np.stack([np.cos(theta), np.sin(theta)], axis=-1)
+    inner = 2 * math.pi * np.arange(8) / 8
+    inside = np.vstack([C, C + 0.5 * R * np.column_stack([np.cos(inner), np.sin(inner)])])
+    side = np.linspace(0.0, 1.0, 11)
+    box = np.unique(
+        np.concatenate(
+            [np.column_stack([side, 0 * side]), np.column_stack([side, 0 * side + 1]),
+             np.column_stack([0 * side, side]), np.column_stack([0 * side + 1, side])]
+        ),
+        axis=0,
+    )  # fmt: skip
+    return np.concatenate([pts.reshape(-1, 2), inside, box])
+
+
+def far_joined(mesh: Mesh, columns: int, rows: int) -> int:
+    """The edges between points of a staggered lattice (:func:`lattice`) that are not
+    neighbours: more than one row apart, or in the same row more than one column
+    apart, or in adjacent rows more than half a column apart. The innermost row is
+    left out: it borders the disc inside, empty down to the points half way, and
+    its chords and the fans over them join it to that disc."""
+    per = 2 * rows + 1
+    e = p1_of(mesh).edges
+    e = e[(e < columns * per).all(axis=1)]
+    col, row = e // per, e % per
+    keep = (row > 0).all(axis=1)
+    col, row = col[keep], row[keep]
+    half = 2 * col + (row - rows) % 2  # the position round the ring in half columns
+    dh = np.abs(half[:, 0] - half[:, 1])
+    dh = np.minimum(dh, 2 * columns - dh)
+    dr = np.abs(row[:, 0] - row[:, 1])
+    return int(((dr > 1) | ((dr == 1) & (dh > 1)) | ((dr == 0) & (dh > 2))).sum())
+
+
+def test_the_flips_join_a_staggered_lattice_across_a_ring_to_its_neighbours_only(ring):
+    """The chart straightens the ring: its rows become lines, its columns lines across
+    them, and the Delaunay triangulation there joins each point of a lattice whose
+    rows are staggered by half a column to its two neighbours in its row and the two
+    nearest in each row beside it. The triangulation in the metric, straight-sided,
+    joins points several columns apart under the chords of the rows (0.94 long
+    sizes apart round a circle of radius 3 long sizes, they stray 30 radial sizes
+    from the circle)."""
+    fld, _ = ring
+    columns, rows = 20, 3
+    pts = lattice(columns, rows, stagger=True)
+    cloud = Mesh(pts, np.zeros((0, 3), dtype=np.int64), fld.box)
+    mesh = curve(fld, triangulate(cloud, fld, AdaptOptions(relocate=False)))
+    assert far_joined(mesh, columns, rows) > 50
+    res = charts.chart_flips(fld, mesh)
+    assert valid_exact(res.mesh.points[res.mesh.triangles]).all()
+    assert far_joined(res.mesh, columns, rows) == 0
+    np.testing.assert_array_equal(res.mesh.points[res.mesh.vertex_ids], pts)
+
+
+def test_no_core_leaves_the_mesh_as_it_is():
+    fld = load_metric(METRICS / "toy.yaml")
+    pts = np.random.default_rng(0).uniform(0, 1, (60, 2))
+    mesh = curve(fld, triangulate(Mesh(pts, np.zeros((0, 3), dtype=np.int64), fld.box), fld))
+    res = charts.chart_flips(fld, mesh)
+    assert res.mesh is mesh and res.edges == 0
+
+
+def test_the_swap_stage_runs_the_chart_flips_unless_turned_off(ring):
+    fld, _ = ring
+    pts = lattice(20, 3, stagger=True)
+    cloud = Mesh(pts, np.zeros((0, 3), dtype=np.int64), fld.box)
+    mesh = curve(fld, triangulate(cloud, fld, AdaptOptions(relocate=False)))
+    later = set(SWAP_STAGES) - {"charts"}
+    only = AdaptOptions(**dict.fromkeys(later, False))
+    assert swap(fld, mesh, only).chart_edges == charts.chart_flips(fld, mesh).edges > 0
+    assert swap(fld, mesh, replace(only, charts=False)).chart_edges == 0
+
+
+def test_renode_lays_the_edges_along_a_rows_on_the_row(ring):
+    """Straight-sided, an edge between neighbours of a row is a chord 14 – 24 long (it
+    strays 30 radial sizes inside the circle); its chart node is the point of the row
+    (the circle of radius R + δ) half way round, the edge then 0.95 long. The
+    innermost row is left out, as in :func:`far_joined`: it borders the empty disc,
+    whose triangles fold when its edges bend outwards."""
+    fld, chart = ring
+    columns, rows = 20, 3
+    per = 2 * rows + 1
+    pts = lattice(columns, rows)
+    cloud = Mesh(pts, np.zeros((0, 3), dtype=np.int64), fld.box)
+    mesh = curve(
+        fld, triangulate(cloud, fld, AdaptOptions(relocate=False)), AdaptOptions(straight=True)
+    )
+    layer = charts.layer_points(fld, pts, [chart])
+    out, moved = charts.renode(fld, layer, mesh)
+    assert valid_exact(out.points[out.triangles]).all()
+    e = out.edges
+    col, row = e // per, e % per
+    dc = np.abs(col[:, 0] - col[:, 1])
+    along = (e < columns * per).all(axis=1) & (row[:, 0] == row[:, 1]) & (row[:, 0] > 0)
+    along &= np.minimum(dc, columns - dc) == 1
+    assert along.sum() == columns * (2 * rows) and moved >= along.sum()
+    rel = out.points[out.edge_mid[along]] - C
+    offset = radial_offset((row[along, 0] - rows).astype(float))
+    size = H0 + G * np.abs(offset)
+    np.testing.assert_allclose(
+        np.hypot(rel[:, 0], rel[:, 1]), R + offset, rtol=0, atol=1e-3 * size.min()
+    )
+    half = 2 * math.pi * (np.minimum(col[along, 0], col[along, 1]) + 0.75) / columns
+    wrap = np.abs(col[along, 0] - col[along, 1]) > 1  # the pair across angle 0
+    half = np.where(wrap, 2 * math.pi * (columns - 0.25) / columns, half)
+    angle = np.arctan2(rel[:, 1], rel[:, 0]) % (2 * math.pi)
+    np.testing.assert_allclose(angle, half % (2 * math.pi), rtol=0, atol=1e-9)
