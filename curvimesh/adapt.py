@@ -191,8 +191,8 @@ def curve(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> 
 class SwapStage:
     """The mesh after the swap stage, and its counts of swaps, insertions, splits,
     swap rounds, re-curved edge nodes, node moves fitting an interpolation metric's
-    function, vertex shifts, vertex removals, intrinsic flips, repeated passes of
-    the clean-up stages and edge nodes bent for quality."""
+    function, vertex shifts, vertex removals, intrinsic flips, edges the chart flips
+    made, repeated passes of the clean-up stages and edge nodes bent for quality."""
 
     mesh: Mesh
     swaps: int
@@ -252,8 +252,11 @@ class _Tally:
 
 
 def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> SwapStage:
-    """Stage 4: (unless ``options.intrinsic`` is off) intrinsic Delaunay flips where
-    the metric's frame turns fast (:mod:`curvimesh.intrinsic`), curvilinear edge
+    """Stage 4: (unless ``options.charts`` is off) the edges of thin curved layers
+    flipped to the Delaunay triangulation of each layer's own coordinates, with the
+    edge nodes those give (:mod:`curvimesh.charts`); (unless ``options.intrinsic`` is
+    off) intrinsic Delaunay flips where the metric's frame turns fast
+    (:mod:`curvimesh.intrinsic`), curvilinear edge
     swaps driven by quality (4), then the clean-up stages: (unless ``options.insert``
     is off) vertex insertions into the cavities of the long curved edges
     (:mod:`curvimesh.insert`), (unless ``options.split`` is off)
@@ -319,8 +322,7 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
         found = None
     return SwapStage(
         mesh, fitted=fitted, bent=bent, flips=flips, chart_edges=chart_edges, passes=passes,
-        defects=found,
-        unit_defects=unit, **vars(tally),
+        defects=found, unit_defects=unit, **vars(tally),
     )  # fmt: skip
 
 
