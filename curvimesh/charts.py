@@ -328,7 +328,7 @@ def lawson_flips(
     return out
 
 
-def _chart_nodes(field: MetricField, layers: Layers, pts: NDArray, edges: NDArray) -> NDArray:
+def _chart_nodes(field: MetricField, layers: Layers, edges: NDArray) -> NDArray:
     """Middle nodes ``(k, 2)`` of edges ``(k, 2)`` between points of one chart: the images
     of the middles of the edges in the chart (:func:`from_chart`)."""
     out = np.empty((len(edges), 2))
@@ -356,7 +356,6 @@ def renode(field: MetricField, layers: Layers, mesh: Mesh) -> tuple[Mesh, int]:
     chart node alone leaves a triangle invalid whose other edges are chords; with
     theirs moved too, the triangle bends as the layer does."""
     pts = np.array(mesh.points)
-    p1 = p1_of(mesh)
     renumber = np.full(len(pts), -1, dtype=np.int64)
     renumber[mesh.vertex_ids] = np.arange(len(mesh.vertex_ids))
     ends = renumber[mesh.edges]
@@ -367,7 +366,7 @@ def renode(field: MetricField, layers: Layers, mesh: Mesh) -> tuple[Mesh, int]:
         return mesh, 0
     x0, x1 = pts[mesh.edges[cand, 0]], pts[mesh.edges[cand, 1]]
     old = pts[mesh.edge_mid[cand]]
-    target = _chart_nodes(field, layers, np.asarray(p1.points), ends[cand])
+    target = _chart_nodes(field, layers, ends[cand])
     shorter = edge_lengths_fast(field, x0, x1, target, remember=False) < edge_lengths_fast(
         field, x0, x1, old, remember=False
     )
@@ -398,18 +397,18 @@ def _triangle_keys(tris: NDArray, n: int) -> NDArray:
 
 
 def _valid_nodes(
-    field: MetricField, layers: Layers, mesh: Mesh, mids: NDArray, renode: NDArray
+    field: MetricField, layers: Layers, mesh: Mesh, mids: NDArray, fresh: NDArray
 ) -> tuple[NDArray, NDArray]:
-    """Middle nodes ``(E, 2)`` for the edges of a P1 ``mesh``: ``mids`` where ``renode`` is
+    """Middle nodes ``(E, 2)`` for the edges of a P1 ``mesh``: ``mids`` where ``fresh`` is
     False; elsewhere the chart node (:func:`_chart_nodes`), or, on the edges of the
     triangles that it leaves invalid, the shortest parabola's
     (:func:`curvimesh.freenode.shortest_parabola`). Returns the nodes and the
     triangles still invalid (decided exactly)."""
     pts = np.asarray(mesh.points)
-    edges = np.flatnonzero(renode)
+    edges = np.flatnonzero(fresh)
     mids = np.array(mids, dtype=float)
-    mids[edges] = _chart_nodes(field, layers, pts, mesh.edges[edges])
-    touched = np.flatnonzero(renode[mesh.tri_edges].any(axis=1))
+    mids[edges] = _chart_nodes(field, layers, mesh.edges[edges])
+    touched = np.flatnonzero(fresh[mesh.tri_edges].any(axis=1))
 
     def invalid() -> NDArray:
         nodes = np.concatenate([pts[mesh.corners[touched]], mids[mesh.tri_edges[touched]]], axis=1)
@@ -417,7 +416,7 @@ def _valid_nodes(
 
     bad = invalid()
     redo = np.unique(mesh.tri_edges[bad])
-    redo = redo[renode[redo]]
+    redo = redo[fresh[redo]]
     if redo.size == 0:
         return mids, bad
     a, b = pts[mesh.edges[redo, 0]], pts[mesh.edges[redo, 1]]
