@@ -10,10 +10,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from numpy.typing import NDArray
 
 from curvimesh import charts
-from curvimesh.adapt import SWAP_STAGES, AdaptOptions, curve, swap, triangulate
+from curvimesh.adapt import SWAP_STAGES, AdaptOptions, curve, sample, swap, triangulate
 from curvimesh.bezier import valid_exact
 from curvimesh.cores import layer_cores
 from curvimesh.mesh import Mesh, p1_of
@@ -200,3 +202,43 @@ def test_renode_lays_the_edges_along_a_rows_on_the_row(ring):
     half = np.where(wrap, 2 * math.pi * (columns - 0.25) / columns, half)
     angle = np.arctan2(rel[:, 1], rel[:, 0]) % (2 * math.pi)
     np.testing.assert_allclose(angle, half % (2 * math.pi), rtol=0, atol=1e-9)
+
+
+def ring_text(radius: float, h0: float, growth: float, centre: tuple[float, float]) -> str:
+    cx, cy = centre
+    return f"""
+name: ring
+domain: {{box: [[0, 0], [1, 1]]}}
+definitions:
+  r: sqrt((x - {cx})**2 + (y - {cy})**2)
+metric:
+  eigen:
+    sizes: ['min({h0} + {growth}*abs(r - {radius}), 0.1)', 0.1]
+    angle: atan2(y - {cy}, x - {cx})
+"""
+
+
+@settings(max_examples=5, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    st.floats(0.15, 0.3),
+    st.floats(5e-5, 5e-4),
+    st.floats(0.1, 0.4),
+    st.floats(0.45, 0.55),
+    st.floats(0.45, 0.55),
+)
+def test_the_chart_flips_keep_any_thin_ring_s_curved_mesh_valid(radius, h0, growth, cx, cy):
+    """Any thin ring (100:1 to 2,000:1, radius 0.15 – 0.3): on the curved mesh of the
+    first three stages, the stage leaves every triangle valid (decided exactly), the
+    vertices where they are, as many triangles, and the box's sides as they were."""
+    fld = load_metric_text(ring_text(radius, h0, growth, (cx, cy)))
+    opt = AdaptOptions()
+    mesh = curve(fld, triangulate(sample(fld, opt), fld, opt), opt)
+    res = charts.chart_flips(fld, mesh)
+    out = res.mesh
+    assert valid_exact(out.points[out.triangles]).all()
+    assert len(out.triangles) == len(mesh.triangles)
+    np.testing.assert_array_equal(out.points[out.vertex_ids], mesh.points[mesh.vertex_ids])
+    sides = lambda m: {  # noqa: E731
+        tuple(np.round(m.points[m.edge_mid[e]], 15)) for e in np.flatnonzero(m.edge_tris[:, 1] < 0)
+    }
+    assert sides(out) == sides(mesh)
