@@ -56,9 +56,17 @@ from curvimesh.bezier import valid_exact
 from curvimesh.cores import CORE_MIN_SAG, arc_lengths, layer_cores, points_on_core
 from curvimesh.curve import assemble_p2, boundary_edge_mask
 from curvimesh.freenode import shortest_parabola
-from curvimesh.mesh import Mesh, apply_flips, flip_candidates, independent_flips, p1_of
+from curvimesh.mesh import (
+    EdgeStore,
+    Mesh,
+    apply_flips,
+    flip_candidates,
+    independent_flips,
+    p1_of,
+)
 from curvimesh.metric import MetricField, eigen_frame, layer_sag
 from curvimesh.quality import edge_lengths_fast
+from curvimesh.triangulate import in_circle
 
 #: Gauss–Legendre rule of the chart's metric lengths across the layer: 5 nodes on each
 #: piece of the segment between its fractions 0, 2⁻¹⁰, 2⁻⁹, …, 1/2, 1. The size is least
@@ -187,10 +195,18 @@ def to_chart(field: MetricField, chart: Chart, pts: NDArray) -> tuple[NDArray, N
     whether each foot lies inside the curve (not at an open core's end)."""
     pts = np.asarray(pts, dtype=float)
     u, inside, _ = _feet(chart, pts)
+    return (*_coordinates(field, chart, pts, u), inside)
+
+
+def _coordinates(
+    field: MetricField, chart: Chart, pts: NDArray, u: NDArray
+) -> tuple[NDArray, NDArray]:
+    """Chart coordinates s, n ``(k,)`` of points ``(k, 2)`` whose feet are at the curve's
+    parameters u (:func:`_feet`)."""
     foot = chart.curve(u)
     s = np.interp(u, chart.u, chart.arc)
     side = np.where(np.einsum("ki,ki->k", pts - foot, _left_normals(chart, u)) < 0, -1.0, 1.0)
-    return s, side * segment_lengths(field, foot, pts), inside
+    return s, side * segment_lengths(field, foot, pts)
 
 
 def from_chart(field: MetricField, chart: Chart, s: NDArray, n: NDArray) -> NDArray:
@@ -248,15 +264,17 @@ def layer_points(field: MetricField, pts: NDArray, charts: list[Chart]) -> Layer
     cand = np.flatnonzero(layer_sag(g, dg) >= CORE_MIN_SAG)
     if cand.size == 0:
         return Layers(charts, which, s, n)
-    dist = np.stack([_feet(c, pts[cand])[2] for c in charts])
+    feet = [_feet(c, pts[cand]) for c in charts]  # (u, inside, distance) on each
+    dist = np.stack([f[2] for f in feet])
     nearest = np.argmin(dist, axis=0)
     close = dist[nearest, np.arange(len(cand))] <= h_max[cand]
-    for k, chart in enumerate(charts):
-        idx = cand[close & (nearest == k)]
-        if idx.size == 0:
+    for k, (chart, (u, inside, _)) in enumerate(zip(charts, feet, strict=True)):
+        on = close & (nearest == k)
+        if not on.any():
             continue
-        sk, nk, inside = to_chart(field, chart, pts[idx])
-        which[idx[inside]], s[idx], n[idx] = k, sk, nk
+        idx = cand[on]
+        s[idx], n[idx] = _coordinates(field, chart, pts[idx], u[on])
+        which[idx[inside[on]]] = k
     return Layers(charts, which, s, n)
 
 
@@ -276,18 +294,6 @@ def _quad_coordinates(layers: Layers, quads: NDArray) -> NDArray:
 def _orient(p: NDArray, q: NDArray, r: NDArray) -> NDArray:
     """Twice the signed area of triangles (p, q, r), each ``(k, 2)``."""
     return (q[:, 0] - p[:, 0]) * (r[:, 1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (r[:, 0] - p[:, 0])
-
-
-def _in_circle(a: NDArray, b: NDArray, c: NDArray, d: NDArray) -> NDArray:
-    """The in-circle determinant of d against counter-clockwise (a, b, c), each ``(k, 2)``:
-    positive when d lies inside their circumcircle."""
-    a, b, c = a - d, b - d, c - d
-    na, nb, nc = (a**2).sum(1), (b**2).sum(1), (c**2).sum(1)
-    return (
-        a[:, 0] * (b[:, 1] * nc - nb * c[:, 1])
-        - a[:, 1] * (b[:, 0] * nc - nb * c[:, 0])
-        + na * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
-    )
 
 
 def lawson_flips(
@@ -312,7 +318,7 @@ def lawson_flips(
             break
         xy = _quad_coordinates(layers, quads[idx])
         pa, pb, pc, pd = xy[:, 0], xy[:, 1], xy[:, 2], xy[:, 3]
-        det = _in_circle(pa, pb, pc, pd)
+        det = in_circle(pa, pb, pc, pd)
         scale = ((pa - pd) ** 2).sum(1)
         convex = (_orient(pa, pd, pc) > 0) & (_orient(pd, pb, pc) > 0)
         # a fold (a triangle inverted in the chart) is undone first, whatever the circles
@@ -461,14 +467,13 @@ def flipped(field: MetricField, layers: Layers, mesh: Mesh) -> tuple[Mesh, int, 
     p1 = p1_of(mesh)
     pts = np.asarray(p1.points)
     in_layer = layers.which >= 0
-    # the input's edge nodes, by the sorted ends of each edge
+    # the input's edge nodes, by their ends
     renumber = np.full(len(mesh.points), -1, dtype=np.int64)
     renumber[mesh.vertex_ids] = np.arange(len(mesh.vertex_ids))
-    ends = np.sort(renumber[mesh.edges], axis=1)
+    ends = renumber[mesh.edges]
     n = len(pts)
-    old_keys = ends[:, 0] * n + ends[:, 1]
-    order = np.argsort(old_keys)
-    old_keys, old_mids = old_keys[order], mesh.points[mesh.edge_mid][order]
+    store = EdgeStore(n)
+    store.add(store.key(ends[:, 0], ends[:, 1]), mesh.points[mesh.edge_mid], np.zeros(len(ends)))
     old_tris = np.sort(_triangle_keys(p1.corners, n))
     tries = 0
     while tries < MAX_TRIES and in_layer.sum() >= 4:
@@ -478,11 +483,8 @@ def flipped(field: MetricField, layers: Layers, mesh: Mesh) -> tuple[Mesh, int, 
         new = ~np.isin(_triangle_keys(tris, n), old_tris, assume_unique=True)
         if not new.any():
             break
-        e_sorted = np.sort(cur.edges, axis=1)
-        keys = e_sorted[:, 0] * n + e_sorted[:, 1]
-        pos = np.minimum(np.searchsorted(old_keys, keys), len(old_keys) - 1)
-        known = old_keys[pos] == keys
-        mids = np.where(known[:, None], old_mids[pos], 0.0)
+        pos, known = store.find(store.key(cur.edges[:, 0], cur.edges[:, 1]))
+        mids = np.where(known[:, None], store.mid[pos], 0.0)
         # the edges of the new triangles take their chart nodes (not the box's sides)
         fresh = np.zeros(len(cur.edges), dtype=bool)
         fresh[cur.tri_edges[new].ravel()] = True

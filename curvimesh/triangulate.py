@@ -268,12 +268,28 @@ def delaunay_insert(mesh: Mesh, new: NDArray) -> Mesh | None:
     return out if _certified(out, mesh) else None
 
 
-def _in_circle_metric(pa, pb, pc, pd, m: NDArray) -> NDArray:
-    """In-circle determinant of d against CCW (a, b, c) after the map x ↦ Lᵀx, M = L Lᵀ.
+def in_circle(a: NDArray, b: NDArray, c: NDArray, d: NDArray) -> NDArray:
+    """In-circle determinant ``(k,)`` of d against counter-clockwise (a, b, c), each
+    ``(k, 2)``: positive when d lies inside their circumcircle (the classical
+    Delaunay predicate of Lawson's flips, in floating point).
 
-    Positive when d lies inside the circumcircle of (a, b, c) in the metric M
-    ``(k, 2, 2)`` (the classical Delaunay predicate of Lawson's flips, applied
-    in the space where M is the identity; the map keeps orientation).
+    >>> in_circle(*np.array([[[0.0, 0.0]], [[1.0, 0.0]], [[0.0, 1.0]], [[0.5, 0.5]]])).tolist()
+    [0.5]
+    """
+    a, b, c = a - d, b - d, c - d
+    na, nb, nc = (a**2).sum(1), (b**2).sum(1), (c**2).sum(1)
+    return (
+        a[:, 0] * (b[:, 1] * nc - nb * c[:, 1])
+        - a[:, 1] * (b[:, 0] * nc - nb * c[:, 0])
+        + na * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
+    )
+
+
+def _in_circle_metric(pa, pb, pc, pd, m: NDArray) -> NDArray:
+    """:func:`in_circle` of d against CCW (a, b, c) after the map x ↦ Lᵀx, M = L Lᵀ:
+    positive when d lies inside the circumcircle of (a, b, c) in the metric M
+    ``(k, 2, 2)`` (the predicate applied in the space where M is the identity; the
+    map keeps orientation).
     """
     chol = np.linalg.cholesky(m)  # M = L Lᵀ
 
@@ -281,12 +297,7 @@ def _in_circle_metric(pa, pb, pc, pd, m: NDArray) -> NDArray:
         return np.einsum("kji,kj->ki", chol, p - pd)  # Lᵀ (p − d)
 
     a, b, c = tr(pa), tr(pb), tr(pc)
-    na, nb, nc = (a**2).sum(1), (b**2).sum(1), (c**2).sum(1)
-    return (
-        a[:, 0] * (b[:, 1] * nc - nb * c[:, 1])
-        - a[:, 1] * (b[:, 0] * nc - nb * c[:, 0])
-        + na * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
-    )
+    return in_circle(a, b, c, np.zeros_like(a))
 
 
 def metric_delaunay(field, mesh: Mesh, *, max_rounds: int = 200) -> Mesh:

@@ -13,6 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
+from test_cores import ring as ring_yaml
 
 from curvimesh import charts
 from curvimesh.adapt import SWAP_STAGES, AdaptOptions, curve, sample, swap, triangulate
@@ -25,16 +26,7 @@ METRICS = Path(__file__).resolve().parent.parent / "metrics"
 
 #: A ring of radius R about C: radial size H0 + G |r − R| (to 0.1), 0.1 round it.
 R, H0, G, C = 0.3, 1e-4, 0.25, np.array([0.5, 0.5])
-RING = f"""
-name: ring
-domain: {{box: [[0, 0], [1, 1]]}}
-definitions:
-  r: sqrt((x - {C[0]})**2 + (y - {C[1]})**2)
-metric:
-  eigen:
-    sizes: ['min({H0} + {G}*abs(r - {R}), 0.1)', 0.1]
-    angle: atan2(y - {C[1]}, x - {C[0]})
-"""
+RING = ring_yaml(R, H0, centre=(float(C[0]), float(C[1])), growth=G)
 
 
 def radial_metric_length(delta: NDArray) -> NDArray:
@@ -204,20 +196,6 @@ def test_renode_lays_the_edges_along_a_rows_on_the_row(ring):
     np.testing.assert_allclose(angle, half % (2 * math.pi), rtol=0, atol=1e-9)
 
 
-def ring_text(radius: float, h0: float, growth: float, centre: tuple[float, float]) -> str:
-    cx, cy = centre
-    return f"""
-name: ring
-domain: {{box: [[0, 0], [1, 1]]}}
-definitions:
-  r: sqrt((x - {cx})**2 + (y - {cy})**2)
-metric:
-  eigen:
-    sizes: ['min({h0} + {growth}*abs(r - {radius}), 0.1)', 0.1]
-    angle: atan2(y - {cy}, x - {cx})
-"""
-
-
 @settings(max_examples=5, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     st.floats(0.15, 0.3),
@@ -230,7 +208,7 @@ def test_the_chart_flips_keep_any_thin_ring_s_curved_mesh_valid(radius, h0, grow
     """Any thin ring (100:1 to 2,000:1, radius 0.15 – 0.3): on the curved mesh of the
     first three stages, the stage leaves every triangle valid (decided exactly), the
     vertices where they are, as many triangles, and the box's sides as they were."""
-    fld = load_metric_text(ring_text(radius, h0, growth, (cx, cy)))
+    fld = load_metric_text(ring_yaml(radius, h0, centre=(cx, cy), growth=growth))
     opt = AdaptOptions()
     mesh = curve(fld, triangulate(sample(fld, opt), fld, opt), opt)
     res = charts.chart_flips(fld, mesh)

@@ -19,7 +19,11 @@ from curvimesh.metric import load_metric, load_metric_text
 METRICS = Path(__file__).resolve().parent.parent / "metrics"
 
 
-def ring(radius: float, h0: float, along: float = 0.1, centre=(0.5, 0.5)) -> str:
+def ring(
+    radius: float, h0: float, along: float = 0.1, centre=(0.5, 0.5), growth: float = 0.25
+) -> str:
+    """A ring of radius ``radius`` about ``centre``: radial size h0 + growth |r − radius|
+    (to ``along``), ``along`` round it."""
     cx, cy = centre
     return f"""
 name: ring
@@ -28,7 +32,7 @@ definitions:
   r: sqrt((x - {cx})**2 + (y - {cy})**2)
 metric:
   eigen:
-    sizes: ['min({h0} + 0.25*abs(r - {radius}), {along})', {along}]
+    sizes: ['min({h0} + {growth}*abs(r - {radius}), {along})', {along}]
     angle: atan2(y - {cy}, x - {cx})
 """
 
