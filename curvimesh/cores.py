@@ -208,10 +208,19 @@ def place(field: MetricField, line: NDArray, closed: bool, spacing: float) -> ND
     is that long or longer and the one before. Around a closed core the last gap
     is a fraction of a step: the walk's arc lengths are scaled so that its
     steps, the closing one as long as their mean, go round once (the last point
-    is dropped when its gap is under half a step).
+    is dropped when its gap is under half a step). An open core that crosses the
+    box (:func:`to_box`) is walked from a side, the same way: the walk's steps are
+    scaled to reach the other side, and the points on the sides are left out
+    (the sides have their own vertices there); with one end on the box, the walk
+    starts there and leaves that end out.
     """
+    at_box = (False, False)
     if closed:
         line = np.vstack([line, line[:1]])
+    else:
+        line, at_box = to_box(field, line)
+        if at_box[1] and not at_box[0]:  # walk from the box
+            line, at_box = line[::-1], (True, False)
     arc = arc_lengths(field, line)
     total = arc[-1]
     s, pts, walked = 0.0, [points_on_core(field, line, arc, np.zeros(1))[0]], [0.0]
@@ -235,14 +244,52 @@ def place(field: MetricField, line: NDArray, closed: bool, spacing: float) -> ND
             s = cand[0]
             pts.append(ends[0])
         walked.append(s)
-    if not closed or len(walked) < 3:
-        return np.array(pts)
+    if not (closed or at_box[1]) or len(walked) < 3:
+        return np.array(pts[1:] if at_box[0] else pts)
     w = np.array(walked)
     mean = w[-1] / (len(w) - 1)
     if total - w[-1] < 0.5 * mean:
         w = w[:-1]
         mean = w[-1] / (len(w) - 1)
-    return points_on_core(field, line, arc, w * (total / (w[-1] + mean)))
+    w = w * (total / (w[-1] + mean))
+    return points_on_core(field, line, arc, w[1:] if at_box[0] else w)
+
+
+def to_box(field: MetricField, line: NDArray) -> tuple[NDArray, tuple[bool, bool]]:
+    """An open core ``(m, 2)`` extended to the box at each end that its trace stopped
+    near (:func:`trace` stops where a step would leave the box), and whether each
+    end now lies on the box.
+
+    An end within 1.5 trace steps of a side along its last chord is extended to
+    that side, then moved along the side to where h_min is least (the core's
+    crossing: a straight extension strays from a curved core by some of its short
+    sizes, and the chord to it would be measured across the layer).
+
+    Why: the side's own vertices (:func:`curvimesh.boundary.discretize_box`) stand
+    where the core crosses it, so a point laid on the core a fraction of a step
+    inside is dropped as too close to them, and the layer's first column is then up
+    to two steps from the side (edges of 1.4 - 1.6 from the crossing on the
+    1,000:1 cubic of bench/robustness u74). :func:`place` walks from the side.
+    """
+    xmin, ymin, xmax, ymax = field.box
+    lo, hi = np.array([xmin, ymin]), np.array([xmax, ymax])
+    ends, flags = [None, None], [False, False]
+    for k, (end, prev) in enumerate(((line[0], line[1]), (line[-1], line[-2]))):
+        d = (end - prev) / np.linalg.norm(end - prev)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            hits = np.concatenate([(lo - end) / d, (hi - end) / d])  # x, y, x, y faces
+        hits = np.where(hits >= 0.0, hits, np.inf)
+        face = int(np.argmin(hits))
+        reach = 1.5 * TRACE_STEP * frames(field, end[None])[1][0]
+        if not hits[face] <= reach:
+            continue
+        on_side = np.clip(end + hits[face] * d, lo, hi)
+        along = np.array([[0.0, 1.0]]) if face % 2 == 0 else np.array([[1.0, 0.0]])
+        q, inside = least_along(field, on_side[None], along, np.array([reach]))
+        ends[k] = np.clip(q[0], lo, hi) if inside[0] else on_side
+        flags[k] = True
+    line = np.vstack([p for p in (ends[0], line, ends[1]) if p is not None])
+    return line, (flags[0], flags[1])
 
 
 #: The traced cores of each field (dropped with the field), and their points by

@@ -162,3 +162,57 @@ def test_the_columns_across_a_small_ring_start_on_the_core_at_every_seed():
         layers.append(np.sort(rel[band], axis=0))
     for other in layers[1:]:
         np.testing.assert_array_equal(other, layers[0])
+
+
+# 1,000:1 about the circle of radius 1 centred at (0.5, -0.6), long size 0.1: the
+# core crosses the box's left and right sides at y = -0.6 + sqrt(0.75)
+ARC = """
+name: arc
+domain: {box: [[0, 0], [1, 1]]}
+definitions:
+  r: sqrt((x - 0.5)**2 + (y + 0.6)**2)
+metric:
+  eigen:
+    sizes: ['min(0.0001 + 0.25*abs(r - 1), 0.1)', 0.1]
+    angle: atan2(y + 0.6, x - 0.5)
+"""
+CROSSING_Y = -0.6 + math.sqrt(0.75)
+
+
+def test_an_open_core_is_extended_to_where_it_crosses_the_sides():
+    fld = load_metric_text(ARC)
+    ((line, closed),) = cores.layer_cores(fld)
+    assert not closed
+    # the trace stops short of the sides (a step would leave the box)
+    assert min(line[0, 0], 1 - line[0, 0], line[-1, 0], 1 - line[-1, 0]) > 1e-3
+    ext, at_box = cores.to_box(fld, line)
+    assert at_box == (True, True)
+    np.testing.assert_array_equal(ext[1:-1], line)
+    ends = sorted([tuple(ext[0]), tuple(ext[-1])])
+    np.testing.assert_allclose(ends, [(0.0, CROSSING_Y), (1.0, CROSSING_Y)], atol=1e-8)
+    # a ring inside the box has no end on it
+    ring_line = cores.layer_cores(load_metric_text(ring(0.3, 1e-4)))[0][0]
+    assert cores.to_box(load_metric_text(ring(0.3, 1e-4)), ring_line[:40])[1] == (False, False)
+
+
+def test_the_points_of_a_core_across_the_box_are_evenly_spaced_from_side_to_side():
+    fld = load_metric_text(ARC)
+    pts = cores.layer_core_points(fld, SPACING)
+    centre = np.array([0.5, -0.6])
+    np.testing.assert_allclose(np.linalg.norm(pts - centre, axis=1), 1.0, atol=1e-8)
+    # by symmetry every parabola step along the circle spans the same angle, so the
+    # steps scaled to fit from side to side are equal, the gaps to the sides too
+    side = math.atan2(CROSSING_Y + 0.6, 0.5)
+    angle = np.sort(np.arctan2(pts[:, 1] + 0.6, pts[:, 0] - 0.5))
+    gaps = np.diff(np.concatenate([[side], angle, [math.pi - side]]))
+    np.testing.assert_allclose(gaps, gaps.mean(), rtol=1e-3)
+    # each of them a parabola of about 0.95 (scaled by under half a step in all)
+    length = shortest_parabola(fld, pts[:-1], pts[1:]).length
+    assert np.all(np.abs(length - SPACING) < 0.5 * SPACING / len(pts))
+    # and the fronts keep the first and last: a step from the sides' vertices
+    opt = sampling.SamplingOptions()
+    boundary = discretize_box(fld, target=opt.step, min_dist=opt.min_dist)
+    sampled = sampling.sample_points(fld, boundary, opt)
+    core = cores.layer_core_points(fld, sampling.CORE_SPACING * opt.step)
+    nb = len(boundary.vertices)
+    np.testing.assert_array_equal(sampled[nb : nb + len(core)], core)
