@@ -62,6 +62,7 @@ from curvimesh.mesh import (
     apply_flips,
     flip_candidates,
     independent_flips,
+    p1_edges,
     p1_of,
 )
 from curvimesh.metric import MetricField, eigen_frame, layer_sag
@@ -362,9 +363,7 @@ def renode(field: MetricField, layers: Layers, mesh: Mesh) -> tuple[Mesh, int]:
     chart node alone leaves a triangle invalid whose other edges are chords; with
     theirs moved too, the triangle bends as the layer does."""
     pts = np.array(mesh.points)
-    renumber = np.full(len(pts), -1, dtype=np.int64)
-    renumber[mesh.vertex_ids] = np.arange(len(mesh.vertex_ids))
-    ends = renumber[mesh.edges]
+    ends = p1_edges(mesh)
     which = layers.which[ends]
     cand = np.flatnonzero((which[:, 0] >= 0) & (which[:, 0] == which[:, 1]))
     cand = cand[mesh.edge_tris[cand, 1] >= 0]  # not the box's sides
@@ -468,9 +467,7 @@ def flipped(field: MetricField, layers: Layers, mesh: Mesh) -> tuple[Mesh, int, 
     pts = np.asarray(p1.points)
     in_layer = layers.which >= 0
     # the input's edge nodes, by their ends
-    renumber = np.full(len(mesh.points), -1, dtype=np.int64)
-    renumber[mesh.vertex_ids] = np.arange(len(mesh.vertex_ids))
-    ends = renumber[mesh.edges]
+    ends = p1_edges(mesh)
     n = len(pts)
     store = EdgeStore(n)
     store.add(store.key(ends[:, 0], ends[:, 1]), mesh.points[mesh.edge_mid], np.zeros(len(ends)))

@@ -76,6 +76,7 @@ from curvimesh.mesh import (
     apply_flips,
     flip_candidates,
     independent_flips,
+    p1_edges,
     p1_of,
 )
 from curvimesh.metric import MetricField
@@ -339,10 +340,8 @@ def intrinsic_flips(field: MetricField, mesh: Mesh, *, min_length: float = 0.7) 
     if not region.any():
         return IntrinsicResult(mesh, 0)
     pts = np.asarray(p1.points)
-    renumber = np.full(len(mesh.points), -1)
-    renumber[mesh.vertex_ids] = np.arange(len(mesh.vertex_ids))
     given = EdgeStore(len(pts))  # the input's nodes
-    e_in = renumber[mesh.edges]
+    e_in = p1_edges(mesh)
     given.add(given.key(e_in[:, 0], e_in[:, 1]), mesh.points[mesh.edge_mid], np.zeros(len(e_in)))
     lengths = _Lengths(field, pts)
     forbidden: set = set()

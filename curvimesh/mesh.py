@@ -314,10 +314,26 @@ def p1_of(mesh: Mesh) -> Mesh:
     """
     if len(mesh.triangles) == 0:
         return mesh
-    keep = mesh.vertex_ids
-    renumber = np.full(len(mesh.points), -1, dtype=np.int64)
-    renumber[keep] = np.arange(len(keep))
-    return Mesh(mesh.points[keep], renumber[mesh.corners], mesh.box)
+    return Mesh(mesh.points[mesh.vertex_ids], corner_numbers(mesh)[mesh.corners], mesh.box)
+
+
+def corner_numbers(mesh: Mesh) -> NDArray[np.int64]:
+    """Each node's number among the triangle corners ``(n,)``, -1 for the other nodes:
+    the point it is in :func:`p1_of`.
+
+    >>> corner_numbers(Mesh([[0, 0], [9, 9], [2, 0], [0, 2], [1, 0], [1, 1], [0, 1]],
+    ...                     [[0, 2, 3, 4, 5, 6]])).tolist()
+    [0, -1, 1, 2, -1, -1, -1]
+    """
+    out = np.full(len(mesh.points), -1, dtype=np.int64)
+    out[mesh.vertex_ids] = np.arange(len(mesh.vertex_ids))
+    return out
+
+
+def p1_edges(mesh: Mesh) -> NDArray[np.int64]:
+    """The two corners of each edge of ``mesh`` ``(ne, 2)``, numbered as the points of
+    :func:`p1_of` (the edges in ``mesh.edges``' order)."""
+    return corner_numbers(mesh)[mesh.edges]
 
 
 def boundary_sides(mesh: Mesh, tol: float | None = None) -> NDArray[np.int64]:

@@ -66,6 +66,7 @@ from curvimesh.mesh import (
     apply_flips,
     flip_candidates,
     independent_flips,
+    p1_edges,
     p1_of,
     sorted_member,
     sorted_union,
@@ -213,9 +214,7 @@ def swap(
     store = EdgeStore(n)
     if mesh.order == 2:
         # edge nodes of the input: edge k of p1 has the node of the same edge in mesh
-        renumber = np.full(len(mesh.points), -1)
-        renumber[mesh.vertex_ids] = np.arange(len(mesh.vertex_ids))
-        e = renumber[mesh.edges]
+        e = p1_edges(mesh)
         mids = mesh.points[mesh.edge_mid]
     else:
         e = p1.edges

@@ -107,7 +107,7 @@ def test_quality_bound_holds_for_every_possible_swap(name):
 
     from curvimesh import adapt as pipeline
     from curvimesh.geodesic import chord_lower_bound, lens_lower_bound, shortest_parabola
-    from curvimesh.mesh import flip_candidates, p1_of
+    from curvimesh.mesh import flip_candidates, p1_edges, p1_of
     from curvimesh.metric import load_metric
     from curvimesh.quality import edge_lengths_fast
     from curvimesh.swap import quality_bound
@@ -117,9 +117,7 @@ def test_quality_bound_holds_for_every_possible_swap(name):
     p2 = pipeline.curve(fld, pipeline.triangulate(pipeline.sample(fld, opt), fld, opt), opt)
     p1 = p1_of(p2)
     pts = np.asarray(p1.points)
-    renumber = np.full(len(p2.points), -1)
-    renumber[p2.vertex_ids] = np.arange(len(p2.vertex_ids))
-    edges = renumber[p2.edges]
+    edges = p1_edges(p2)
     mids = np.asarray(p2.points)[p2.edge_mid]
     node = {(int(min(i, j)), int(max(i, j))): k for k, (i, j) in enumerate(edges)}
     _, _, _, a, b, c, d = flip_candidates(p1)
