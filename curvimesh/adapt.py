@@ -223,6 +223,11 @@ class SwapStage:
         )
 
 
+#: Length above which an edge left at the end of the swap stage is re-curved once
+#: more, towards its shortest parabola with a free node where that is shorter
+#: (:func:`curvimesh.recurve.optimal_nodes`): the top of the unit range.
+FREE_FROM = 1.4
+
 #: Most passes of (swaps, re-curving) at the end of the swap stage; a pass after the
 #: first runs only when the re-curving before it moved a node.
 RECURVE_PASSES = 3
@@ -309,7 +314,12 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
         known = None if found is None else (found.lengths, found.qualities)
         br = bend_nodes(fld, mesh, min_dist=opt.sampling.min_dist, measured=known)
         mesh, bent = br.mesh, br.bent
-    if bent:
+    freed = 0
+    if opt.recurve:
+        rc = recurve(fld, mesh, longer_than=FREE_FROM, free_from=FREE_FROM, from_node=True)
+        mesh, freed = rc.mesh, rc.moved
+        tally.recurved += freed
+    if bent or freed:
         found = None  # measured before the nodes moved
     unit = found  # the unit mesh's, which the fit (a trade, by design) leaves behind
     fitted = 0

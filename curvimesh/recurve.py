@@ -42,12 +42,14 @@ and splits, alternating with the last swaps (``--no-recurve`` turns it off).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from curvimesh.bezier import valid_exact
-from curvimesh.freenode import shortest_parabola
+from curvimesh.freenode import free_node, shortest_parabola
 from curvimesh.geodesic import parabola_length
 from curvimesh.mesh import Mesh, independent_flips, local_edge
 from curvimesh.metric import MetricField
@@ -58,6 +60,30 @@ FRACTIONS = (1.0, 0.75, 0.5, 0.375, 0.25, 0.125)
 
 #: Relative length accuracy of the shortening test (adaptive Gauss–Legendre).
 LENGTH_RTOL = 1e-7
+
+
+def optimal_nodes(field: MetricField, x0: NDArray, x1: NDArray, *, free_from: float) -> NDArray:
+    """The node ``(n, 2)`` each edge moves towards: its shortest parabola's (paper
+    equation (3), :func:`curvimesh.freenode.shortest_parabola`), or, where that is
+    longer than ``free_from``, the node of the shortest parabola with the node free
+    in the plane (:func:`curvimesh.freenode.free_node`) when that is shorter.
+
+    The paper's node is on the chord's perpendicular bisector: the parabola is
+    symmetric about it. Along a thin layer whose curvature changes (towards the
+    inflection of the 1,000:1 cubic of bench/robustness u74, radius of curvature
+    0.6, long size 0.08) the curve a row's edge should follow is not symmetric:
+    two edges whose symmetric parabolas are 1.57 and 1.52 long are 1.28 and 1.24
+    with free nodes. :mod:`curvimesh.freenode` frees nodes only where the metric's
+    frame turns fast, and u74's turns 8° per unit length there.
+    """
+    par = shortest_parabola(field, x0, x1, exact_length=False)
+    out = par.mid.copy()
+    long = np.flatnonzero(par.length > free_from)
+    if long.size:
+        mid, length = free_node(field, x0[long], x1[long], par.alpha[long])
+        shorter = length < par.length[long]
+        out[long[shorter]] = mid[shorter]
+    return out
 
 
 @dataclass(frozen=True)
@@ -77,12 +103,22 @@ def recurve(
     min_length: float = 0.7,
     max_rounds: int = 20,
     area_order: int = 4,
+    longer_than: float = 0.0,
+    free_from: float = math.inf,
+    from_node: bool = False,
 ) -> RecurveResult:
     """Move interior edge nodes towards their shortest parabolas (module docstring).
 
     ``mesh`` is a valid P2 mesh; the result has the same node numbering and
     triangles, and only edge nodes of interior edges (held by two triangles)
     move. Edges on the boundary keep their nodes. Deterministic.
+
+    Only the edges longer than ``longer_than`` (by the two-segment rule) are
+    tried; those whose shortest parabola is longer than ``free_from`` move towards
+    the shortest one with a free node where that is shorter (:func:`optimal_nodes`).
+    With ``from_node`` the fractions are taken of the way from the edge's current
+    node to that node, x_m(s) = x_m + s (x_m* − x_m), instead of from the chord's
+    middle: a node that is valid where it is can then go part of the way.
     """
     pts = np.array(mesh.points)
     tris = np.asarray(mesh.triangles)
@@ -90,16 +126,17 @@ def recurve(
     cand = np.flatnonzero(et[:, 1] >= 0)
     if cand.size == 0 or mesh.order != 2:
         return RecurveResult(mesh, 0, 0)
+    length = edge_lengths_fast(field, pts[edges[:, 0]], pts[edges[:, 1]], pts[emid])
+    cand = cand[length[cand] > longer_than]
     x0, x1 = pts[edges[cand, 0]], pts[edges[cand, 1]]
-    opt = shortest_parabola(field, x0, x1, exact_length=False).mid
-    seg = 0.5 * (x0 + x1)
+    opt = optimal_nodes(field, x0, x1, free_from=free_from)
+    seg = pts[emid[cand]] if from_node else 0.5 * (x0 + x1)
     # already at the optimum (to rounding): nothing to gain
     scale = np.hypot(*(x1 - x0).T)
     away = np.hypot(*(pts[emid[cand]] - opt).T) > 1e-9 * scale
     cand, x0, x1, opt, seg = (v[away] for v in (cand, x0, x1, opt, seg))
     if cand.size == 0:
         return RecurveResult(mesh, 0, 0)
-    length = edge_lengths_fast(field, pts[edges[:, 0]], pts[edges[:, 1]], pts[emid])
     cur_len = parabola_length(field, x0, x1, pts[emid[cand]], rtol=LENGTH_RTOL)
     t1, t2 = et[cand, 0], et[cand, 1]
     # slot of the edge's node in each triangle: 3 + local edge index
@@ -166,4 +203,4 @@ def recurve(
     return RecurveResult(Mesh(pts, tris, mesh.box), moved, rounds)
 
 
-__all__ = ["FRACTIONS", "RecurveResult", "recurve"]
+__all__ = ["FRACTIONS", "RecurveResult", "optimal_nodes", "recurve"]

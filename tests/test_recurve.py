@@ -10,11 +10,11 @@ from test_pipeline import slow_check
 
 from curvimesh import adapt as pipeline
 from curvimesh.bezier import valid_exact
-from curvimesh.geodesic import bisector_normal, shortest_parabola
+from curvimesh.geodesic import bisector_normal, parabola_length, shortest_parabola
 from curvimesh.mesh import Mesh, to_p2_straight
 from curvimesh.metric import load_metric_text
 from curvimesh.quality import edge_lengths, metric_areas, quality_from
-from curvimesh.recurve import FRACTIONS, recurve
+from curvimesh.recurve import FRACTIONS, optimal_nodes, recurve
 from curvimesh.triangulate import delaunay
 
 CONSTANT = """
@@ -256,3 +256,65 @@ def test_recurving_is_deterministic_and_leaves_its_input_alone(front_case):
     np.testing.assert_array_equal(again.mesh.points, res.mesh.points)
     assert again.moved == res.moved and again.rounds == res.rounds
     np.testing.assert_array_equal(straight.points, copy)
+
+
+# 1,000:1 about the cubic y = 0.5 + 2.4 (x - 0.5)^3 (bench/robustness u74): on the
+# cubic the long size 0.08 lies along it, so the metric length of an arc of the
+# cubic is its Euclidean length over 0.08
+CUBIC = """
+domain: {box: [[0, 0], [1, 1]]}
+definitions:
+  d: (y - 0.5 - 2.4*(x - 0.5)**3)/sqrt(1 + (7.2*(x - 0.5)**2)**2)
+metric:
+  eigen:
+    sizes: ['min(0.00008 + 0.2*abs(d), 0.08)', 0.08]
+    angle: atan2(1, -7.2*(x - 0.5)**2)
+"""
+
+
+def test_a_free_node_follows_a_thin_layer_that_no_symmetric_parabola_follows():
+    fld = load_metric_text(CUBIC)
+    # two arcs about 1.08 long, mirror images of each other through the inflection
+    xa = np.array([0.30, 0.615])
+    xb = xa + 0.085
+
+    def cubic(x):
+        return np.column_stack([x, 0.5 + 2.4 * (x - 0.5) ** 3])
+
+    a, b = cubic(xa), cubic(xb)
+    arc = np.array(
+        [
+            quad(lambda x: np.sqrt(1 + (7.2 * (x - 0.5) ** 2) ** 2), u, v)[0]
+            for u, v in zip(xa, xb, strict=True)
+        ]
+    )
+    arc /= 0.08
+    symmetric = shortest_parabola(fld, a, b).length
+    assert (symmetric > 2.5 * arc).all()
+    # below free_from the paper's node; above it, the free one, within 5 % of the arc
+    np.testing.assert_array_equal(
+        optimal_nodes(fld, a, b, free_from=np.inf), shortest_parabola(fld, a, b).mid
+    )
+    free = parabola_length(fld, a, b, optimal_nodes(fld, a, b, free_from=1.4))
+    assert (free < 1.05 * arc).all()
+    np.testing.assert_allclose(free[0], free[1], rtol=1e-3)  # the mirror images
+
+
+def test_recurving_the_long_edges_from_their_nodes_moves_only_them(front_case):
+    fld, _, straight, _ = front_case
+    before = _lengths(fld, straight)
+    floor = float(np.quantile(before[_interior(straight)], 0.75))
+    out = recurve(fld, straight, longer_than=floor, free_from=floor, from_node=True)
+    slow_check(out.mesh)
+    after = _lengths(fld, out.mesh)
+    assert out.moved > 0
+    assert (after <= before * (1 + 1e-9)).all()
+    # the edges not longer than the floor keep their nodes (the two-segment rule
+    # decides: those within 1e-3 of the floor are left out of the check)
+    keep = before < floor * (1 - 1e-3)
+    nodes = straight.edge_mid[keep]
+    np.testing.assert_array_equal(out.mesh.points[nodes], straight.points[nodes])
+    moved = np.flatnonzero(
+        np.hypot(*(out.mesh.points[straight.edge_mid] - straight.points[straight.edge_mid]).T) > 0
+    )
+    assert (before[moved] > floor * (1 - 1e-3)).all()
