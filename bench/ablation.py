@@ -21,7 +21,8 @@ For every metric file, fifteen meshes, each stage added to the previous ones:
   by 60° or more per unit length (:mod:`curvimesh.intrinsic`; nothing elsewhere);
 * ``+ insert``: and vertex insertion at long curved edges (:mod:`curvimesh.insert`);
 * ``+ split``: and curvilinear edge splits (:mod:`curvimesh.split`);
-* ``+ recurve``: and edge nodes moved back towards their shortest parabolas
+* ``+ recurve``: and edge nodes moved back towards their shortest parabolas, and
+  at the end those of the edges left longer than 1.4 towards a free middle node
   (:mod:`curvimesh.recurve`);
 * ``+ length swaps``: and swaps for edge lengths (:func:`curvimesh.swap.swap`);
 * ``+ shift``: and vertices moved at the edges left long and at the
@@ -167,7 +168,8 @@ def section(results: list[dict], seed: int) -> str:
         "intrinsic Delaunay flips where the metric's directions turn 60° or more per unit "
         "length, *+ insert* "
         "vertex insertion at long edges, *+ split* curvilinear edge splits, *+ recurve* "
-        "edge nodes moved back towards their shortest parabolas, *+ length swaps* swaps "
+        "edge nodes moved back towards their shortest parabolas (and at the end, those of "
+        "the edges left longer than 1.4 towards a free middle node), *+ length swaps* swaps "
         "for edge lengths, *+ shift* vertices moved at the edges left long and at the "
         "triangles of quality below 0.8, *+ remove* vertices of the triangles still below "
         "0.3 and of the edges still longer than 1.4 removed, *+ repeat* the swaps and "

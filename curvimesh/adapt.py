@@ -281,7 +281,10 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
     the clean-up stages again (see :func:`repeat_passes`). Then (unless
     ``options.bend`` is off) the nodes of the edges of the triangles still below
     quality 0.8 bent off their parabolas where that raises the worse quality of
-    their two triangles (:mod:`curvimesh.bend`). Last,
+    their two triangles (:mod:`curvimesh.bend`). Then (unless ``options.recurve`` is off) the
+    nodes of the edges still longer than :data:`FREE_FROM` re-curved once more, from
+    where they are towards the shortest parabola with a free middle node
+    (:func:`curvimesh.recurve.optimal_nodes`). Last,
     when the metric is an ``interpolation``
     form (and unless ``options.fit`` is off), edge nodes moved to lower the
     interpolation error of its function (:mod:`curvimesh.fit`).

@@ -297,7 +297,10 @@ STAGE_HELP = {
     ),
     "insert": "No vertex insertions at long curved edges.",
     "split": "No splits of long curved edges.",
-    "recurve": "No re-curving of edge nodes towards their shortest parabolas.",
+    "recurve": (
+        "No re-curving of edge nodes towards their shortest parabolas (nor, at the "
+        "end, of the edges left longer than 1.4 towards a free middle node)."
+    ),
     "length_swaps": "No swaps for edge lengths (swaps for quality (4) only).",
     "shift": (
         "No vertex shifts at the edges left longer than 1.4 and at triangles of quality < 0.8."

@@ -117,14 +117,20 @@ def test_the_examples_without_a_thin_curved_layer_have_no_core(name):
     assert len(cores.layer_core_points(load_metric(METRICS / f"{name}.yaml"), SPACING)) == 0
 
 
-def test_the_fronts_start_from_the_core_before_the_sides():
-    fld = load_metric(METRICS / "thin_ring.yaml")
+def _sampled_after_the_sides(fld):
+    """The sampled points that follow the box's vertices, the core's points and the
+    box's discretisation."""
     opt = sampling.SamplingOptions()
     boundary = discretize_box(fld, target=opt.step, min_dist=opt.min_dist)
     pts = sampling.sample_points(fld, boundary, opt)
     core = cores.layer_core_points(fld, sampling.CORE_SPACING * opt.step)
-    nb = len(boundary.vertices)
-    np.testing.assert_array_equal(pts[nb : nb + len(core)], core)
+    return pts[len(boundary.vertices) :], core, boundary
+
+
+def test_the_fronts_start_from_the_core_before_the_sides():
+    fld = load_metric(METRICS / "thin_ring.yaml")
+    after, core, boundary = _sampled_after_the_sides(fld)
+    np.testing.assert_array_equal(after[: len(core)], core)
     without = sampling.sample_points(fld, boundary, sampling.SamplingOptions(cores=False))
     assert not np.isin(core[:, 0], without[:, 0]).any()
 
@@ -210,9 +216,5 @@ def test_the_points_of_a_core_across_the_box_are_evenly_spaced_from_side_to_side
     length = shortest_parabola(fld, pts[:-1], pts[1:]).length
     assert np.all(np.abs(length - SPACING) < 0.5 * SPACING / len(pts))
     # and the fronts keep the first and last: a step from the sides' vertices
-    opt = sampling.SamplingOptions()
-    boundary = discretize_box(fld, target=opt.step, min_dist=opt.min_dist)
-    sampled = sampling.sample_points(fld, boundary, opt)
-    core = cores.layer_core_points(fld, sampling.CORE_SPACING * opt.step)
-    nb = len(boundary.vertices)
-    np.testing.assert_array_equal(sampled[nb : nb + len(core)], core)
+    after, core, _ = _sampled_after_the_sides(fld)
+    np.testing.assert_array_equal(after[: len(core)], core)
