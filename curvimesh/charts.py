@@ -57,9 +57,9 @@ from curvimesh.cores import CORE_MIN_SAG, arc_lengths, layer_cores, points_on_co
 from curvimesh.curve import assemble_p2, boundary_edge_mask
 from curvimesh.freenode import shortest_parabola
 from curvimesh.mesh import (
-    EdgeStore,
     Mesh,
     apply_flips,
+    edge_nodes,
     flip_candidates,
     independent_flips,
     p1_edges,
@@ -466,11 +466,8 @@ def flipped(field: MetricField, layers: Layers, mesh: Mesh) -> tuple[Mesh, int, 
     p1 = p1_of(mesh)
     pts = np.asarray(p1.points)
     in_layer = layers.which >= 0
-    # the input's edge nodes, by their ends
-    ends = p1_edges(mesh)
+    store = edge_nodes(mesh)  # the input's edge nodes, by their ends
     n = len(pts)
-    store = EdgeStore(n)
-    store.add(store.key(ends[:, 0], ends[:, 1]), mesh.points[mesh.edge_mid], np.zeros(len(ends)))
     old_tris = np.sort(_triangle_keys(p1.corners, n))
     tries = 0
     while tries < MAX_TRIES and in_layer.sum() >= 4:

@@ -74,9 +74,9 @@ from curvimesh.mesh import (
     EdgeStore,
     Mesh,
     apply_flips,
+    edge_nodes,
     flip_candidates,
     independent_flips,
-    p1_edges,
     p1_of,
 )
 from curvimesh.metric import MetricField
@@ -340,9 +340,7 @@ def intrinsic_flips(field: MetricField, mesh: Mesh, *, min_length: float = 0.7) 
     if not region.any():
         return IntrinsicResult(mesh, 0)
     pts = np.asarray(p1.points)
-    given = EdgeStore(len(pts))  # the input's nodes
-    e_in = p1_edges(mesh)
-    given.add(given.key(e_in[:, 0], e_in[:, 1]), mesh.points[mesh.edge_mid], np.zeros(len(e_in)))
+    given = edge_nodes(mesh)  # the input's nodes
     lengths = _Lengths(field, pts)
     forbidden: set = set()
     frozen = np.zeros(len(pts), dtype=bool)

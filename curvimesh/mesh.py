@@ -336,6 +336,15 @@ def p1_edges(mesh: Mesh) -> NDArray[np.int64]:
     return corner_numbers(mesh)[mesh.edges]
 
 
+def edge_nodes(mesh: Mesh) -> EdgeStore:
+    """The middle nodes of ``mesh``'s edges in an :class:`EdgeStore` keyed by their
+    corners numbered as in :func:`p1_of` (lengths not measured: zero)."""
+    ends = p1_edges(mesh)
+    store = EdgeStore(len(mesh.vertex_ids))
+    store.add(store.key(ends[:, 0], ends[:, 1]), mesh.points[mesh.edge_mid], np.zeros(len(ends)))
+    return store
+
+
 def boundary_sides(mesh: Mesh, tol: float | None = None) -> NDArray[np.int64]:
     """The side of the domain box each boundary edge lies on.
 
