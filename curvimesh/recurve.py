@@ -144,9 +144,9 @@ def recurve(
     active = np.ones(len(cand), dtype=bool)  # worth a try in this round
     done = np.zeros(len(cand), dtype=bool)  # at the optimum
     moved = rounds = 0
+    q = quality_from(metric_areas(field, pts[tris], order=area_order), length[tri_edges])
     while rounds < max_rounds and active.any():
         idx = np.flatnonzero(active)
-        q = quality_from(metric_areas(field, pts[tris], order=area_order), length[tri_edges])
         n1, n2 = pts[tris[t1[idx]]], pts[tris[t2[idx]]]  # (k, 6, 2)
         floor = np.minimum(np.minimum(q[t1[idx]], q[t2[idx]]), max(min_quality, float(q.min())))
         found = np.zeros(len(idx), dtype=bool)
@@ -196,6 +196,10 @@ def recurve(
         # the edges of changed triangles are worth another try (unless at the optimum)
         changed = np.zeros(len(tris), dtype=bool)
         changed[t1[ch]] = changed[t2[ch]] = True
+        # only their qualities change (a move keeps the other edges' nodes)
+        tc = np.flatnonzero(changed)
+        areas = metric_areas(field, pts[tris[tc]], order=area_order)
+        q[tc] = quality_from(areas, length[tri_edges[tc]])
         done[ch] = new_s[good] == FRACTIONS[0]
         active = (active | changed[t1] | changed[t2]) & ~done
         moved += len(ch)
