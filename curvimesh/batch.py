@@ -501,6 +501,7 @@ def run_batch(
             "seed": opt.seed,
             **{name: getattr(opt, name) for name in pipeline.STAGES},
             "retry": opt.retry,
+            "rows": opt.rows,
             **({"max_sag": opt.sampling.max_sag} if math.isfinite(opt.sampling.max_sag) else {}),
             "straight": opt.straight,
             "format": fmt,
@@ -612,6 +613,8 @@ def _options_text(opts: dict) -> str:
     off = [f"--no-{k.replace('_', '-')}" for k in pipeline.STAGES if not opts.get(k, True)]
     if not opts.get("retry", True):
         off.append("--no-retry")
+    if not opts.get("rows", True):
+        off.append("--no-rows")
     if opts.get("straight"):
         off.append("--straight")
     if "max_sag" in opts:

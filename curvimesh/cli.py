@@ -230,15 +230,27 @@ def straight_option(fn: Callable) -> Callable:
     )(fn)
 
 
+def rows_option(fn: Callable) -> Callable:
+    return click.option(
+        "--no-rows",
+        "no_rows",
+        is_flag=True,
+        help=(
+            "No further run with thin curved layers sampled row by row, each row spaced "
+            "by its own parabolas, when the first leaves an edge longer than 1.5."
+        ),
+    )(fn)
+
+
 def retry_option(fn: Callable) -> Callable:
     return click.option(
         "--no-retry",
         "no_retry",
         is_flag=True,
         help=(
-            "No further runs (the hexagonal lattice kept out of thin curved layers, then "
-            "no lattice, then all three with other sampling seeds) when an edge longer "
-            "than 1.5 is left."
+            "No further runs (thin curved layers sampled row by row, the hexagonal lattice "
+            "kept out of them, no lattice, then these with other sampling seeds) when an "
+            "edge longer than 1.5 is left."
         ),
     )(fn)
 
@@ -263,14 +275,16 @@ def _options(
     max_vertices: int = pipeline.MAX_VERTICES,
     straight: bool = False,
     retry: bool = True,
+    rows: bool = True,
     max_sag: float | None = None,
+    sample_rows: bool = False,
     **stages: bool,
 ) -> pipeline.AdaptOptions:
     """The pipeline's options; ``stages`` switches stages by their :class:`AdaptOptions` field,
     ``max_sag`` (None: no bound) is the sampling's :attr:`SamplingOptions.max_sag`."""
-    sampling = SamplingOptions(max_sag=math.inf if max_sag is None else max_sag)
+    sampling = SamplingOptions(max_sag=math.inf if max_sag is None else max_sag, rows=sample_rows)
     return pipeline.AdaptOptions(
-        seed=seed, max_vertices=max_vertices, straight=straight, retry=retry,
+        seed=seed, max_vertices=max_vertices, straight=straight, retry=retry, rows=rows,
         sampling=sampling, **stages,
     )  # fmt: skip
 
@@ -476,11 +490,23 @@ def geodesic(ctx: Context, metric_path, start, end, angle, length) -> None:
 @max_vertices_option
 @stage_flags("hexagons", "cores", "fill")
 @max_sag_option
+@click.option(
+    "--rows",
+    is_flag=True,
+    help=(
+        "Sample thin curved layers row by row from their cores, each row spaced by its own "
+        "parabolas (adapt's run after a first that leaves an edge longer than 1.5)."
+    ),
+)
 @command
-def sample(ctx: Context, metric_path, output, fmt, seed, max_vertices, stages, max_sag) -> None:
+def sample(
+    ctx: Context, metric_path, output, fmt, seed, max_vertices, stages, max_sag, rows
+) -> None:
     """Stage 1: sample points (Algorithm 1, then gap filling); writes nodes with vertex cells."""
     fld = load_metric(metric_path)
-    opt = _options(seed=seed, max_vertices=max_vertices, max_sag=max_sag, **stages)
+    opt = _options(
+        seed=seed, max_vertices=max_vertices, max_sag=max_sag, sample_rows=rows, **stages
+    )
     pipeline.check_size(fld, max_vertices)
     cloud = pipeline.sample(fld, opt)
     ctx.progress(f"sample: {len(cloud.points)} points")
@@ -575,6 +601,7 @@ def _require_triangles(mesh, path: str):
 @straight_option
 @stage_flags()
 @retry_option
+@rows_option
 @max_sag_option
 @command
 def adapt(
@@ -588,6 +615,7 @@ def adapt(
     straight,
     stages,
     no_retry,
+    no_rows,
     max_sag,
 ) -> None:
     """All stages: sample | triangulate | curve | swap, in one process.
@@ -605,18 +633,20 @@ def adapt(
     --no-repeat, --no-bend and --no-fit turn them off, so that the paper's method alone
     is `--no-hexagons --no-cores --no-fill --no-relocate --no-charts --no-intrinsic
     --no-insert --no-split --no-recurve --no-length-swaps --no-shift --no-remove
-    --no-repeat --no-bend --no-fit`. When an
-    edge longer than 1.5 is left, all stages run again with the hexagonal lattice kept
-    out of thin curved layers (--max-sag 0.5), then, if one is still left, without the
-    lattice, then these three with the sampling seeds --seed + 1000, + 2000 and + 3000
-    (each dropped when more than 10 % of its curved edges are longer than 1.5), and the
-    mesh with the shortest longest edge is kept (--no-retry: not).
+    --no-repeat --no-bend --no-fit`. When an edge longer than 1.5 is left, all
+    stages run again: where the metric has thin curved layers, with them sampled
+    row by row from their cores, each row spaced by its own parabolas (--no-rows:
+    not); then with the hexagonal lattice kept out of thin curved layers (--max-sag
+    0.5); then, if one is still left, without the lattice; then these runs with the
+    sampling seeds --seed + 1000, + 2000 and + 3000 (each dropped when more than 10 %
+    of its curved edges are longer than 1.5), and the mesh with the shortest longest
+    edge is kept (--no-retry: not).
     """
     fld = load_metric(metric_path)
     _warn_turn(ctx, fld)
     opt = _options(
         seed=seed, max_vertices=max_vertices, straight=straight, retry=not no_retry,
-        max_sag=max_sag, **stages,
+        rows=not no_rows, max_sag=max_sag, **stages,
     )  # fmt: skip
     t0 = time.perf_counter()
     res = pipeline.adapt(fld, opt, progress=ctx.progress)
@@ -759,6 +789,7 @@ def circles(ctx: Context, metric_path, centres, plot_path) -> None:
 @straight_option
 @stage_flags()
 @retry_option
+@rows_option
 @max_sag_option
 @command
 def batch(
@@ -773,6 +804,7 @@ def batch(
     straight,
     stages,
     no_retry,
+    no_rows,
     max_sag,
 ) -> None:
     """Adapt every metric file, write its mesh, report and pictures, and a summary.
@@ -785,7 +817,10 @@ def batch(
     from curvimesh.batch import parse_gate, run_batch, summary_table
 
     gates = [parse_gate(text) for text in requires]
-    opt = _options(seed=seed, straight=straight, retry=not no_retry, max_sag=max_sag, **stages)
+    opt = _options(
+        seed=seed, straight=straight, retry=not no_retry, rows=not no_rows, max_sag=max_sag,
+        **stages,
+    )  # fmt: skip
     result = run_batch(
         metric_paths,
         out_dir,

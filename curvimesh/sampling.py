@@ -78,6 +78,7 @@ from curvimesh.geodesic import (
     unit_velocity,
 )
 from curvimesh.metric import MetricField, frame_turn, layer_sag, smallest_eigenvalue
+from curvimesh.rows import layer_rows
 from curvimesh.spatial import PointIndex, pairs_within_boxes
 from curvimesh.tensors import intersect_components
 
@@ -100,7 +101,8 @@ class SamplingOptions:
     lattice out of thin curved layers, where a unit chord along the layer strays
     that many short sizes or more from it (:data:`HEX_MAX_SAG`); ``cores`` (default)
     grows the fronts from the cores of thin curved layers first
-    (:func:`sample_points`). ``spacing`` (None: :attr:`step`'s
+    (:func:`sample_points`), and with ``rows`` (not the default) from their rows,
+    each spaced by its own parabolas (:mod:`curvimesh.rows`). ``spacing`` (None: :attr:`step`'s
     default) is 1 with hexagons, whose edges are all ``spacing`` long where
     the metric is constant, and 0.98 without: points shot along both
     principal directions make, where the metric varies slowly, a grid of
@@ -126,6 +128,7 @@ class SamplingOptions:
     shoot_tol: float = 1e-6
     max_points: int = 2_000_000
     cores: bool = True
+    rows: bool = False
 
     @property
     def step(self) -> float:
@@ -570,7 +573,23 @@ def sample_points(
     index.add(boundary.vertices)
     if len(boundary.seeds):
         index.add(boundary.seeds)  # fixed with the boundary; the fronts keep away from them
-    if opt.cores:
+    if opt.cores and opt.rows:
+        fronts = []
+        for core, sides in layer_rows(field, CORE_SPACING * opt.step, opt.step):
+            core = core[accepted_rows(field, index, core, opt)]
+            index.add(core)
+            outer = [core, core]
+            for k in range(max(len(rows) for rows in sides)):
+                for side, rows in enumerate(sides):
+                    if k < len(rows) and len(rows[k]):
+                        row = rows[k][accepted_rows(field, index, rows[k], opt)]
+                        if len(row):
+                            index.add(row)
+                            outer[side] = row
+            fronts.extend(outer if outer[0] is not outer[1] else outer[:1])
+        if fronts:
+            _grow(field, index, np.concatenate(fronts), None, (), opt, None)
+    elif opt.cores:
         core = layer_core_points(field, CORE_SPACING * opt.step)
         if len(core):
             core = core[accepted_rows(field, index, core, opt)]
