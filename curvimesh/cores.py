@@ -30,6 +30,7 @@ back on the core.
 from __future__ import annotations
 
 import weakref
+from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -190,6 +191,72 @@ def points_on_core(field: MetricField, line: NDArray, arc: NDArray, s: NDArray) 
     return np.where(inside[:, None], q, pts)
 
 
+def walk(
+    field: MetricField,
+    at: Callable[[NDArray, NDArray], NDArray],
+    totals: NDArray,
+    spacing: float,
+) -> list[NDArray]:
+    """Arc lengths of walks along several curves at once, each a list starting at 0:
+    from the last point, the next is at the arc length where the shortest parabola
+    (equation (3), :func:`curvimesh.geodesic.shortest_parabola`) from it is
+    ``spacing`` long, interpolated between the first of the trial arc lengths (0.3 to
+    1.2 times ``spacing``) whose parabola is that long or longer and the one before;
+    a walk ends where no trial within its curve's length ``totals[r]`` is.
+
+    ``at(r, s)`` gives the points ``(k, 2)`` of curves ``r`` ``(k,)`` at arc lengths
+    ``s`` ``(k,)``."""
+    n = len(totals)
+    s = np.zeros(n)
+    last = at(np.arange(n), s)
+    walked: list[list[float]] = [[0.0] for _ in range(n)]
+    active = np.flatnonzero(totals > 0.0)
+    while len(active):
+        cand = s[active, None] + spacing * _TRIAL[None, :]
+        ok = cand <= totals[active, None]
+        rr, jj = np.nonzero(ok)
+        length = np.full(cand.shape, np.nan)
+        if len(rr):
+            ends = at(active[rr], cand[rr, jj])
+            length[rr, jj] = shortest_parabola(
+                field, last[active[rr]], ends, exact_length=False, remember=False
+            ).length
+        with np.errstate(invalid="ignore"):
+            hit = ok & (length >= spacing)
+        has = hit.any(axis=1)
+        active, cand, length, hit = active[has], cand[has], length[has], hit[has]
+        if not len(active):
+            break
+        k = np.argmax(hit, axis=1)
+        i = np.arange(len(active))
+        new = cand[i, k]
+        mid = k > 0
+        km = k[mid]
+        lo, hi = length[i[mid], km - 1], length[i[mid], km]
+        t = (spacing - lo) / (hi - lo)
+        new[mid] = cand[i[mid], km - 1] + t * (cand[i[mid], km] - cand[i[mid], km - 1])
+        s[active] = new
+        last[active] = at(active, new)
+        for r, v in zip(active, new, strict=True):
+            walked[r].append(float(v))
+    return [np.array(w) for w in walked]
+
+
+def evened(walked: NDArray, total: float) -> NDArray:
+    """The arc lengths of a walk ``walked`` (:func:`walk`, fewer than three: as they are)
+    scaled so that its steps, a closing one to ``total`` as long as their mean, reach
+    ``total`` (the last walked point is dropped when its gap to ``total`` is under
+    half a step)."""
+    w = walked
+    if len(w) < 3:
+        return w
+    mean = w[-1] / (len(w) - 1)
+    if total - w[-1] < 0.5 * mean:
+        w = w[:-1]
+        mean = w[-1] / (len(w) - 1)
+    return w * (total / (w[-1] + mean))
+
+
 def place(field: MetricField, line: NDArray, closed: bool, spacing: float) -> NDArray:
     """Points ``(k, 2)`` along a traced core, the shortest parabola between successive
     ones (:func:`curvimesh.geodesic.shortest_parabola`, equation (3)) ``spacing`` long.
@@ -202,17 +269,13 @@ def place(field: MetricField, line: NDArray, closed: bool, spacing: float) -> ND
     did worse on the thin rings of bench/robustness: edges of 1.44 – 1.57 left
     where these steps leave none over 1.41.)
 
-    From the first point, the next is at the arc length where the parabola from
-    the last point is ``spacing`` long, interpolated between the first of the
-    trial arc lengths (0.3 to 1.2 times ``spacing``, 37 of them) whose parabola
-    is that long or longer and the one before. Around a closed core the last gap
-    is a fraction of a step: the walk's arc lengths are scaled so that its
-    steps, the closing one as long as their mean, go round once (the last point
-    is dropped when its gap is under half a step). An open core that crosses the
-    box (:func:`to_box`) is walked from a side, the same way: the walk's steps are
-    scaled to reach the other side, and the points on the sides are left out
-    (the sides have their own vertices there); with one end on the box, the walk
-    starts there and leaves that end out.
+    The points are those of a :func:`walk` from the first, each projected on the
+    core (:func:`points_on_core`). Around a closed core the last gap is a fraction
+    of a step: the walk is :func:`evened` to go round once. An open core that
+    crosses the box (:func:`to_box`) is walked from a side, the same way: the
+    walk's steps are scaled to reach the other side, and the points on the sides
+    are left out (the sides have their own vertices there); with one end on the
+    box, the walk starts there and leaves that end out.
     """
     at_box = (False, False)
     if closed:
@@ -223,36 +286,12 @@ def place(field: MetricField, line: NDArray, closed: bool, spacing: float) -> ND
             line, at_box = line[::-1], (True, False)
     arc = arc_lengths(field, line)
     total = arc[-1]
-    s, pts, walked = 0.0, [points_on_core(field, line, arc, np.zeros(1))[0]], [0.0]
-    while True:
-        cand = s + spacing * _TRIAL
-        cand = cand[cand <= total]
-        if len(cand) == 0:
-            break
-        ends = points_on_core(field, line, arc, cand)
-        starts = np.repeat(pts[-1][None], len(cand), axis=0)
-        length = shortest_parabola(field, starts, ends, exact_length=False, remember=False).length
-        hit = np.flatnonzero(length >= spacing)
-        if hit.size == 0:
-            break
-        k = hit[0]
-        if k > 0:  # between the last two trials, where the parabola is ``spacing``
-            t = (spacing - length[k - 1]) / (length[k] - length[k - 1])
-            s = cand[k - 1] + t * (cand[k] - cand[k - 1])
-            pts.append(points_on_core(field, line, arc, np.array([s]))[0])
-        else:
-            s = cand[0]
-            pts.append(ends[0])
-        walked.append(s)
-    if not (closed or at_box[1]) or len(walked) < 3:
-        return np.array(pts[1:] if at_box[0] else pts)
-    w = np.array(walked)
-    mean = w[-1] / (len(w) - 1)
-    if total - w[-1] < 0.5 * mean:
-        w = w[:-1]
-        mean = w[-1] / (len(w) - 1)
-    w = w * (total / (w[-1] + mean))
-    return points_on_core(field, line, arc, w[1:] if at_box[0] else w)
+    (walked,) = walk(
+        field, lambda _, s: points_on_core(field, line, arc, s), np.array([total]), spacing
+    )
+    if closed or at_box[1]:
+        walked = evened(walked, total)
+    return points_on_core(field, line, arc, walked[1:] if at_box[0] else walked)
 
 
 def to_box(field: MetricField, line: NDArray) -> tuple[NDArray, tuple[bool, bool]]:

@@ -17,8 +17,9 @@ along the short direction where it stands (:func:`next_row`: the lines of the
 short direction, which the charts of :mod:`curvimesh.charts` take as the layer's
 columns; a geodesic continued from row to row drifts along a layer whose width
 grows unevenly, 15 – 50 long sizes after six rows on ``u58``). Each row is walked
-on its own, successive points a parabola of ``spacing`` apart (:func:`walk`, as
-:func:`curvimesh.cores.place` walks the core), and its points are shot from the
+on its own, successive points a parabola of ``spacing`` apart
+(:func:`curvimesh.cores.walk`, as :func:`curvimesh.cores.place` walks the core),
+and its points are shot from the
 core again at the places found (:func:`on_row`), so that they lie on the row. A
 row thins out one point at a time as the parabolas along it shorten. The rows of
 a side end after the first one that has no fewer points than the row before: the
@@ -42,93 +43,28 @@ thick is valid only so long (on a 5,000:1 ring its base on the core at most 0.7 
 from __future__ import annotations
 
 import weakref
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from curvimesh.cores import (
-    _TRIAL,
     arc_lengths,
+    evened,
     frames,
     layer_cores,
     place,
     points_on_core,
     to_box,
+    walk,
 )
-from curvimesh.geodesic import shoot, shortest_parabola
+from curvimesh.geodesic import shoot
 from curvimesh.metric import MetricField
 
 #: Most rows on each side of a core.
 MAX_ROWS = 400
 #: Step of the fine polyline of the core the rows are shot from, times ``spacing``.
 FINE_STEP = 0.01
-
-
-def walk(
-    field: MetricField,
-    at: Callable[[NDArray, NDArray], NDArray],
-    totals: NDArray,
-    spacing: float,
-) -> list[NDArray]:
-    """Arc lengths of walks along several curves at once, each a list starting at 0:
-    from the last point, the next is at the arc length where the shortest parabola
-    (equation (3), :func:`curvimesh.geodesic.shortest_parabola`) from it is
-    ``spacing`` long, interpolated between the first of the trial arc lengths (0.3 to
-    1.2 times ``spacing``) whose parabola is that long or longer and the one before;
-    a walk ends where no trial within its curve's length ``totals[r]`` is.
-
-    ``at(r, s)`` gives the points ``(k, 2)`` of curves ``r`` ``(k,)`` at arc lengths
-    ``s`` ``(k,)``."""
-    n = len(totals)
-    s = np.zeros(n)
-    last = at(np.arange(n), s)
-    walked: list[list[float]] = [[0.0] for _ in range(n)]
-    active = np.flatnonzero(totals > 0.0)
-    while len(active):
-        cand = s[active, None] + spacing * _TRIAL[None, :]
-        ok = cand <= totals[active, None]
-        rr, jj = np.nonzero(ok)
-        length = np.full(cand.shape, np.nan)
-        if len(rr):
-            ends = at(active[rr], cand[rr, jj])
-            length[rr, jj] = shortest_parabola(
-                field, last[active[rr]], ends, exact_length=False, remember=False
-            ).length
-        with np.errstate(invalid="ignore"):
-            hit = ok & (length >= spacing)
-        has = hit.any(axis=1)
-        active, cand, length, hit = active[has], cand[has], length[has], hit[has]
-        if not len(active):
-            break
-        k = np.argmax(hit, axis=1)
-        i = np.arange(len(active))
-        new = cand[i, k]
-        mid = k > 0
-        km = k[mid]
-        lo, hi = length[i[mid], km - 1], length[i[mid], km]
-        t = (spacing - lo) / (hi - lo)
-        new[mid] = cand[i[mid], km - 1] + t * (cand[i[mid], km] - cand[i[mid], km - 1])
-        s[active] = new
-        last[active] = at(active, new)
-        for r, v in zip(active, new, strict=True):
-            walked[r].append(float(v))
-    return [np.array(w) for w in walked]
-
-
-def evened(walked: NDArray, total: float) -> NDArray:
-    """The arc lengths of a walk ``walked`` scaled so that its steps, a closing one
-    to ``total`` as long as their mean, reach ``total`` (the last walked point is
-    dropped when its gap to ``total`` is under half a step)."""
-    w = walked
-    if len(w) < 3:
-        return w
-    mean = w[-1] / (len(w) - 1)
-    if total - w[-1] < 0.5 * mean:
-        w = w[:-1]
-        mean = w[-1] / (len(w) - 1)
-    return w * (total / (w[-1] + mean))
 
 
 def _runs(alive: NDArray, closed: bool) -> list[NDArray]:
@@ -219,10 +155,10 @@ def row_places(
     spacing: float,
 ) -> list[tuple[NDArray, NDArray, NDArray]]:
     """Where the points of each fine row (:func:`next_row`) go, walked at once
-    (:func:`walk`) on the row's polyline: a closed row whole, evenly round
-    (:func:`evened`); every run of live points otherwise from its first, and where
-    ``to_ends`` (the core crosses the box, so that the row's runs end near its
-    sides) evenly to its last, both ends left out. Each point as the fine indices
+    (:func:`curvimesh.cores.walk`) on the row's polyline: a closed row whole, evenly
+    round (:func:`curvimesh.cores.evened`); every run of live points otherwise from
+    its first, and where ``to_ends`` (the core crosses the box, so that the row's
+    runs end near its sides) evenly to its last, both ends left out. Each point as the fine indices
     ``i``, ``j`` of the chord it falls on and its fraction ``f`` of the way, ``(k,)``
     each."""
     polys, runs, whole = [], [], []
