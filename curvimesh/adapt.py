@@ -32,7 +32,8 @@ from curvimesh.metric import UNIT_TRIANGLE_AREA, MetricField, density_integral
 from curvimesh.quality import fixed_rule_lengths, fixed_rule_measures
 from curvimesh.recurve import recurve
 from curvimesh.remove import remove_vertices
-from curvimesh.sampling import HEX_MAX_SAG, SamplingOptions, sample_points
+from curvimesh.rows import layer_rows
+from curvimesh.sampling import CORE_SPACING, HEX_MAX_SAG, SamplingOptions, sample_points
 from curvimesh.shift import shift_vertices
 from curvimesh.smooth import relocate
 from curvimesh.split import split_long_edges
@@ -157,7 +158,10 @@ def sample(fld: MetricField, options: AdaptOptions | None = None) -> Mesh:
     opt = options or AdaptOptions()
     sopt = replace(opt.sampling, hexagons=opt.hexagons, cores=opt.cores)
     boundary = discretize_box(fld, target=sopt.step, min_dist=sopt.min_dist)
-    pts = sample_points(fld, boundary, sopt, seed=opt.seed)
+    rows = (
+        layer_rows(fld, CORE_SPACING * sopt.step, sopt.step) if sopt.rows and sopt.cores else None
+    )
+    pts = sample_points(fld, boundary, sopt, seed=opt.seed, rows=rows)
     if opt.fill:
         pts = fill_gaps(fld, pts, sopt)
     return Mesh(pts, np.zeros((0, 3), dtype=np.int64), fld.box)

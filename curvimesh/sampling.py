@@ -78,7 +78,6 @@ from curvimesh.geodesic import (
     unit_velocity,
 )
 from curvimesh.metric import MetricField, frame_turn, layer_sag, smallest_eigenvalue
-from curvimesh.rows import layer_rows
 from curvimesh.spatial import PointIndex, pairs_within_boxes
 from curvimesh.tensors import intersect_components
 
@@ -102,7 +101,8 @@ class SamplingOptions:
     that many short sizes or more from it (:data:`HEX_MAX_SAG`); ``cores`` (default)
     grows the fronts from the cores of thin curved layers first
     (:func:`sample_points`), and with ``rows`` (not the default) from their rows,
-    each spaced by its own parabolas (:mod:`curvimesh.rows`). ``spacing`` (None: :attr:`step`'s
+    each spaced by its own parabolas (:mod:`curvimesh.rows`; the caller lays them,
+    :func:`curvimesh.adapt.sample`). ``spacing`` (None: :attr:`step`'s
     default) is 1 with hexagons, whose edges are all ``spacing`` long where
     the metric is constant, and 0.98 without: points shot along both
     principal directions make, where the metric varies slowly, a grid of
@@ -553,6 +553,7 @@ def sample_points(
     options: SamplingOptions | None = None,
     *,
     seed: int = 0,
+    rows: list[tuple[NDArray, list[list[NDArray]]]] | None = None,
 ) -> NDArray:
     """Algorithm 1: the boundary vertices followed by the sampled interior points ``(n, 2)``.
 
@@ -566,6 +567,10 @@ def sample_points(
     (:func:`curvimesh.cores.layer_core_points`, :data:`CORE_SPACING`), the first
     of them shooting across the layers (:func:`_grow`), until none is kept; then
     from the boundary vertices. Where the field has no such layer, nothing changes.
+    Given ``rows`` (:func:`curvimesh.rows.layer_rows`: each core's points and its rows
+    on each side), each core's points are followed by its rows, row k of both sides
+    before row k + 1, each kept where :func:`accepted_rows` keeps it; the fronts then
+    grow from the last row kept on each side (the core where a side has none).
     """
     opt = options or SamplingOptions()
     rng = np.random.default_rng(seed) if seed else None
@@ -573,9 +578,9 @@ def sample_points(
     index.add(boundary.vertices)
     if len(boundary.seeds):
         index.add(boundary.seeds)  # fixed with the boundary; the fronts keep away from them
-    if opt.cores and opt.rows:
+    if opt.cores and rows is not None:
         fronts = []
-        for core, sides in layer_rows(field, CORE_SPACING * opt.step, opt.step):
+        for core, sides in rows:
             core = core[accepted_rows(field, index, core, opt)]
             index.add(core)
             outer = [core, core]

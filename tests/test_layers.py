@@ -32,6 +32,7 @@ LAYERS = {
     "triangulate": 5,
     "interpolation_error": 6,
     "sampling": 6,
+    "rows": 6,
     "report": 7,
     "plot": 7,
     "curve": 7,

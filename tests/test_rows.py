@@ -9,6 +9,8 @@ import math
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from test_cores import ring
 
 from curvimesh import rows, sampling
@@ -112,8 +114,9 @@ def test_the_sampling_with_rows_starts_from_them():
     fld = load_metric_text(RING)
     boundary = discretize_box(fld, target=1.0, min_dist=0.7)
     opt = sampling.SamplingOptions(rows=True)
-    pts = sampling.sample_points(fld, boundary, opt)
-    ((laid, sides),) = rows.layer_rows(fld, sampling.CORE_SPACING * opt.step, opt.step)
+    laid_rows = rows.layer_rows(fld, sampling.CORE_SPACING * opt.step, opt.step)
+    pts = sampling.sample_points(fld, boundary, opt, rows=laid_rows)
+    ((laid, sides),) = laid_rows
     first = np.concatenate([laid, *sides[0][:1], *sides[1][:1]])
     found = (np.abs(pts[:, None, :] - first[None]).max(axis=2) < 1e-12).any(axis=0)
     assert found.all()  # the core and both first rows, all kept
@@ -160,3 +163,30 @@ def test_sample_rows_on_the_command_line_writes_the_rows(tmp_path):
         # gmsh22 writes 16 significant digits
         near = (np.abs(out[name][:, None, :] - first[None]).max(axis=2) < 1e-12).any(axis=0)
         assert near.mean() > 0.9 if expected else near.mean() < 0.1
+
+
+@settings(max_examples=8, deadline=None)
+@given(
+    radius=st.floats(0.2, 0.35),
+    h0=st.floats(1e-5, 1e-4),
+    growth=st.floats(0.15, 0.35),
+    cx=st.floats(0.47, 0.53),
+    cy=st.floats(0.47, 0.53),
+)
+def test_any_thin_ring_s_rows_lie_at_their_distance_evenly_round(radius, h0, growth, cx, cy):
+    # the radial size h0 + growth |r - R| integrates to ln(1 + growth |r - R| / h0) / growth
+    fld = load_metric_text(ring(radius, h0, centre=(cx, cy), growth=growth))
+    ((laid, sides),) = rows.layer_rows(fld, SPACING)
+    for side in sides:
+        counts = [len(laid)] + [len(p) for p in side]
+        assert all(a > b for a, b in itertools.pairwise(counts[:-1]))
+        for k, pts in enumerate(side, start=1):
+            r = np.hypot(pts[:, 0] - cx, pts[:, 1] - cy)
+            np.testing.assert_allclose(
+                np.abs(r - radius), h0 * math.expm1(growth * k) / growth, rtol=2e-3
+            )
+            # evenly round to the walk's interpolation between its trial steps (the
+            # parabola's length bends sharply with the step at 10,000:1)
+            t = np.sort(np.arctan2(pts[:, 1] - cy, pts[:, 0] - cx))
+            steps = np.diff(np.concatenate([t, t[:1] + 2 * math.pi]))
+            np.testing.assert_allclose(steps, 2 * math.pi / len(pts), rtol=1e-2)
