@@ -277,13 +277,9 @@ def place(field: MetricField, line: NDArray, closed: bool, spacing: float) -> ND
     are left out (the sides have their own vertices there); with one end on the
     box, the walk starts there and leaves that end out.
     """
-    at_box = (False, False)
-    if closed:
-        line = np.vstack([line, line[:1]])
-    else:
-        line, at_box = to_box(field, line)
-        if at_box[1] and not at_box[0]:  # walk from the box
-            line, at_box = line[::-1], (True, False)
+    line, at_box = core_polyline(field, line, closed)
+    if at_box[1] and not at_box[0]:  # walk from the box
+        line, at_box = line[::-1], (True, False)
     arc = arc_lengths(field, line)
     total = arc[-1]
     (walked,) = walk(
@@ -292,6 +288,17 @@ def place(field: MetricField, line: NDArray, closed: bool, spacing: float) -> ND
     if closed or at_box[1]:
         walked = evened(walked, total)
     return points_on_core(field, line, arc, walked[1:] if at_box[0] else walked)
+
+
+def core_polyline(
+    field: MetricField, line: NDArray, closed: bool
+) -> tuple[NDArray, tuple[bool, bool]]:
+    """The polyline a traced core is walked along, and whether each end lies on the
+    box: a closed core's with its first point again at the end, an open core's
+    extended to the box where it crosses it (:func:`to_box`)."""
+    if closed:
+        return np.vstack([line, line[:1]]), (False, False)
+    return to_box(field, line)
 
 
 def to_box(field: MetricField, line: NDArray) -> tuple[NDArray, tuple[bool, bool]]:

@@ -50,12 +50,12 @@ from numpy.typing import NDArray
 
 from curvimesh.cores import (
     arc_lengths,
+    core_polyline,
     evened,
     frames,
     layer_cores,
     place,
     points_on_core,
-    to_box,
     walk,
 )
 from curvimesh.geodesic import shoot
@@ -162,11 +162,11 @@ def row_places(
     (:func:`curvimesh.cores.walk`) on the row's polyline: a closed row whole, evenly
     round (:func:`curvimesh.cores.evened`); every run of live points otherwise from
     its first, and where ``to_ends`` (the core crosses the box, so that the row's
-    runs end near its sides) evenly to its last, both ends left out. Each point as the fine indices
-    ``i``, ``j`` of the chord it falls on and its fraction ``f`` of the way, ``(k,)``
-    each."""
-    polys, runs, whole = [], [], []
-    for row in rows:
+    runs end near its sides) evenly to its last, both ends left out. Each point as
+    the fine indices ``i``, ``j`` of the chord it falls on and its fraction ``f`` of
+    the way, ``(k,)`` each."""
+    polys, runs, whole, owner = [], [], [], []
+    for k, row in enumerate(rows):
         alive = np.isfinite(row).all(axis=1)
         for run in _runs(alive, closed):
             if len(run) < 2:
@@ -177,6 +177,7 @@ def row_places(
             polys.append(row[run])
             runs.append(run)
             whole.append(full)
+            owner.append(k)
     if not polys:
         return [(np.zeros(0, int), np.zeros(0, int), np.zeros(0)) for _ in rows]
     arcs = [arc_lengths(field, p) for p in polys]
@@ -192,21 +193,14 @@ def row_places(
 
     walks = walk(field, at, totals, spacing)
     out: list[list[tuple[NDArray, NDArray, NDArray]]] = [[] for _ in rows]
-    q = 0
-    for k, row in enumerate(rows):
-        alive = np.isfinite(row).all(axis=1)
-        for run in _runs(alive, closed):
-            if len(run) < 2:
-                continue
-            w = walks[q]
-            if whole[q] and closed:
-                w = evened(w, totals[q])
-            elif to_ends and not closed:
-                w = evened(w, totals[q])[1:]
-            pos = np.interp(w, arcs[q], np.arange(len(runs[q]), dtype=float))
-            lo = np.minimum(np.floor(pos).astype(int), len(runs[q]) - 2)
-            out[k].append((runs[q][lo], runs[q][lo + 1], pos - lo))
-            q += 1
+    for q, w in enumerate(walks):
+        if whole[q] and closed:
+            w = evened(w, totals[q])
+        elif to_ends and not closed:
+            w = evened(w, totals[q])[1:]
+        pos = np.interp(w, arcs[q], np.arange(len(runs[q]), dtype=float))
+        lo = np.minimum(np.floor(pos).astype(int), len(runs[q]) - 2)
+        out[owner[q]].append((runs[q][lo], runs[q][lo + 1], pos - lo))
     return [
         tuple(np.concatenate(parts) for parts in zip(*o, strict=True))
         if o
@@ -281,15 +275,11 @@ def _core_rows(
     field: MetricField, line: NDArray, closed: bool, spacing: float, step: float
 ) -> tuple[NDArray, list[list[NDArray]]]:
     """The points laid on one core and its rows on each side (:func:`layer_rows`)."""
-    if closed:
-        poly, at_box = np.vstack([line, line[:1]]), (False, False)
-    else:
-        poly, at_box = to_box(field, line)
+    poly, at_box = core_polyline(field, line, closed)
     to_ends = at_box[0] and at_box[1]
     core = fine_core(field, poly, closed, spacing)
     laid = place(field, line, closed, spacing)
     fine: dict[float, list[NDArray]] = {1.0: [], -1.0: []}
-    rows = {1.0: core.points, -1.0: core.points}
     ways = {1.0: core.v, -1.0: -core.v}
     counts = {1.0: len(laid), -1.0: len(laid)}
     sides: dict[float, list[NDArray]] = {1.0: [], -1.0: []}
@@ -298,11 +288,10 @@ def _core_rows(
         if not active:
             break
         for sign in active:
-            rows[sign], ways[sign] = next_row(
-                field, core.points, rows[sign], ways[sign], closed, step
-            )
-            fine[sign].append(rows[sign])
-        places = row_places(field, [rows[sign] for sign in active], closed, to_ends, spacing)
+            last = fine[sign][-1] if fine[sign] else core.points
+            row, ways[sign] = next_row(field, core.points, last, ways[sign], closed, step)
+            fine[sign].append(row)
+        places = row_places(field, [fine[sign][-1] for sign in active], closed, to_ends, spacing)
         still = []
         for sign, where in zip(active, places, strict=True):
             if len(where[0]) < 3:

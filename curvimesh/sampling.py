@@ -584,10 +584,10 @@ def sample_points(
             core = core[accepted_rows(field, index, core, opt)]
             index.add(core)
             outer = [core, core]
-            for k in range(max(len(rows) for rows in sides)):
-                for side, rows in enumerate(sides):
-                    if k < len(rows) and len(rows[k]):
-                        row = rows[k][accepted_rows(field, index, rows[k], opt)]
+            for k in range(max(len(side_rows) for side_rows in sides)):
+                for side, side_rows in enumerate(sides):
+                    if k < len(side_rows) and len(side_rows[k]):
+                        row = side_rows[k][accepted_rows(field, index, side_rows[k], opt)]
                         if len(row):
                             index.add(row)
                             outer[side] = row
