@@ -212,6 +212,7 @@ class SwapStage:
     removed: int = 0
     flips: int = 0
     chart_edges: int = 0
+    chart_triangles: int = 0
     passes: int = 0
     searched: int = 0
     defects: Defects | None = None  # the final mesh's, when the repeated passes measured them
@@ -221,6 +222,7 @@ class SwapStage:
     def counts(self) -> str:
         """What the stage did, in one line."""
         return (
+            f"{self.chart_triangles} triangles made in layer charts, "
             f"{self.chart_edges} edges flipped in layer charts, {self.flips} intrinsic flips, "
             f"{self.swaps} swaps in {self.rounds} rounds, {self.inserted} insertions, "
             f"{self.splits} splits, {self.recurved} re-curved nodes, {self.shifted} shifts, "
@@ -301,10 +303,10 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
     where it succeeded (the longest edge of quartic, seed 1, 1.70 → 1.99).
     """
     opt = options or AdaptOptions()
-    flips = chart_edges = 0
+    flips = chart_edges = chart_triangles = 0
     if opt.charts and not opt.straight:
         cr = chart_flips(fld, mesh)
-        mesh, chart_edges = cr.mesh, cr.edges
+        mesh, chart_edges, chart_triangles = cr.mesh, cr.edges, cr.rebuilt
     if opt.intrinsic and not opt.straight:
         fl = intrinsic_flips(fld, mesh)
         mesh, flips = fl.mesh, fl.flips
@@ -340,7 +342,8 @@ def swap(fld: MetricField, mesh: Mesh, options: AdaptOptions | None = None) -> S
     if fitted:
         found = None
     return SwapStage(
-        mesh, fitted=fitted, bent=bent, flips=flips, chart_edges=chart_edges, passes=passes,
+        mesh, fitted=fitted, bent=bent, flips=flips, chart_edges=chart_edges,
+        chart_triangles=chart_triangles, passes=passes,
         defects=found, unit_defects=unit, **vars(tally),
     )  # fmt: skip
 
@@ -495,9 +498,10 @@ def adapt(
 ) -> AdaptResult:
     """All stages in one process; then (unless ``options.retry`` is off), while the mesh
     keeps an edge longer than :data:`RETRY_ABOVE` and the hexagonal lattice was on, all
-    stages again (:func:`retries`): with the thin curved layers sampled row by row
-    (where the field has any), with the lattice kept out of those layers, then
-    without it; the mesh with the shortest longest edge is kept (the earlier on a
+    stages again (:func:`retries`): with the thin curved layers sampled by the fronts
+    (where the field has any, which the first run samples row by row:
+    :func:`first_run`), with the lattice kept out of those layers, then without it;
+    the mesh with the shortest longest edge is kept (the earlier on a
     tie). The seconds of every stage add up all runs. For an ``interpolation``
     metric the edges are judged before the fit (:mod:`curvimesh.fit`), which trades
     their unit lengths for the function's error: judged after it, an unseen tanh ring
@@ -533,7 +537,7 @@ def adapt(
     not, and ``metrics/hard/tight_front`` at seed 3 kept an edge of 1.78 in all three
     runs of its seed (1.441 with seed 1003).
     """
-    opt = options or AdaptOptions()
+    opt = first_run(options or AdaptOptions(), fld)
     if not (opt.retry and opt.hexagons and not opt.straight):
         return _run(fld, opt, progress)[0]
     runs: list[tuple[str, AdaptOptions]] = []
@@ -601,25 +605,39 @@ def adapt(
     return AdaptResult(kept.mesh, kept.swaps, seconds, kept.metric_area)
 
 
+def first_run(opt: AdaptOptions, fld: MetricField) -> AdaptOptions:
+    """The options of :func:`adapt`'s first run: ``opt``, with the thin curved layers
+    sampled row by row (:mod:`curvimesh.rows`) where the field has any
+    (:func:`curvimesh.cores.layer_cores`) and ``opt.rows`` and ``opt.cores`` are on
+    (not for straight-sided meshes).
+
+    Row by row, a layer's points lie on rows of its chart, which
+    :func:`curvimesh.charts.rebuilt` triangulates in the chart; sampled by the fronts,
+    its columns end every other one where the rows thin out, and the chart's
+    triangulation of those points is not kept. Measured on the 25 fields of
+    ``bench/robustness`` and ``metrics/`` with cores (seed 0, one run each): 15 give
+    the same mesh either way; the row-by-row run meets every target where the other
+    leaves edges of 1.44 (``u72``), 7.3 (``u56``: 1.69 row by row) and 15.7
+    (``u58``), and takes fewer triangles on six circular layers (``u45`` 1.106 →
+    1.016 times the ideal count); on ``u74`` both runs leave long edges (8.7 row by
+    row, 5.7 not), which the later runs mend."""
+    if opt.rows and opt.cores and not opt.straight and not opt.sampling.rows and layer_cores(fld):
+        return replace(opt, sampling=replace(opt.sampling, rows=True))
+    return opt
+
+
 def retries(opt: AdaptOptions, fld: MetricField | None = None) -> list[tuple[str, AdaptOptions]]:
     """The runs :func:`adapt` makes after ``opt``'s, in order, while an edge longer than
-    :data:`RETRY_ABOVE` is left, each with what it says of itself: where the field
-    ``fld`` has thin curved layers (:func:`curvimesh.cores.layer_cores`) and
-    ``opt.rows`` is on, with those layers sampled row by row (:mod:`curvimesh.rows`);
-    then with the hexagonal lattice kept out of thin curved layers (``max_sag``
-    :data:`HEX_MAX_SAG`, unless ``opt`` bounds it already), then without the lattice.
-
-    The rows come as a further run, not in the first: where the first run leaves no
-    edge over 1.5 they may do worse. Measured on the circular layers of
-    bench/robustness (run without retries): on ``u45`` (5,000:1) the row-by-row
-    sampling leaves every edge in [0.7, 1.4] (longest 1.400, before 1.398); on
-    ``u73`` (1,500:1, near a side) it leaves 11.7 where the first run meets every
-    target: :mod:`curvimesh.charts` flips a row-by-row layer towards its own Delaunay
-    triangulation less well (see :mod:`curvimesh.rows`)."""
+    :data:`RETRY_ABOVE` is left, each with what it says of itself: where ``opt``
+    samples the thin curved layers of the field ``fld`` row by row
+    (:func:`first_run`), with them sampled by the fronts like the rest; then with the
+    hexagonal lattice kept out of thin curved layers (``max_sag``
+    :data:`HEX_MAX_SAG`, unless ``opt`` bounds it already), then without the
+    lattice."""
     runs = []
-    if fld is not None and opt.rows and opt.cores and not opt.sampling.rows and layer_cores(fld):
-        rows = replace(opt, sampling=replace(opt.sampling, rows=True))
-        runs.append(("with the thin curved layers sampled row by row", rows))
+    if fld is not None and opt.rows and opt.sampling.rows and layer_cores(fld):
+        fronts = replace(opt, sampling=replace(opt.sampling, rows=False))
+        runs.append(("with the thin curved layers sampled by the fronts", fronts))
     if not opt.sampling.max_sag <= HEX_MAX_SAG:
         bounded = replace(opt, sampling=replace(opt.sampling, max_sag=HEX_MAX_SAG))
         runs.append(("with the hexagonal lattice kept out of thin curved layers", bounded))

@@ -20,27 +20,38 @@ straightens the layer. The points of a layer are those where a unit chord along
 it strays at least :data:`curvimesh.cores.CORE_MIN_SAG` short sizes
 (:func:`curvimesh.metric.layer_sag`), near a core. The stage
 
-1. flips the edges among them towards the Delaunay triangulation of their chart
-   coordinates (:func:`lawson_flips`: Lawson's flips, as
-   :func:`curvimesh.triangulate.metric_delaunay` in the plane, folds first) and
-   gives the edges of the new triangles the middle node that is the image of the
-   edge's middle in the chart (:func:`from_chart`), or, where that leaves a
-   triangle invalid, the shortest parabola's. The triangles are then the images
-   of straight triangles of the chart, which bend as the layer does, valid where
-   the map is smooth on their scale though their straight-sided twins fold.
-   Where a triangle is still invalid (decided exactly), its corners are taken out
-   of the layer and the flips are made again from the input (:func:`flipped`);
-2. moves the middle nodes of the layer's edges to their chart nodes where that
+1. triangulates each layer again in its chart (:func:`rebuilt`): the triangles at
+   its points are replaced by the constrained Delaunay triangulation of the chart
+   coordinates of their corners inside their boundary
+   (:func:`chart_triangulation`), made from the coordinates alone, and each new
+   edge gets the middle node that is the image of the edge's middle in the chart
+   (:func:`from_chart`), or, where that leaves a triangle invalid, the shortest
+   parabola's. The triangles are then the images of straight triangles of the
+   chart, which bend as the layer does, valid where the map is smooth on their
+   scale though their straight-sided twins fold. The new triangulation is kept
+   only where it is valid (decided exactly, after flips of the edges of the
+   triangles left invalid, :func:`_repaired`) and leaves fewer edges longer than
+   1.4 than the one it replaces;
+2. where it was not kept, flips the edges among the layer's points towards the
+   Delaunay triangulation of their chart coordinates (:func:`lawson_flips`:
+   Lawson's flips, as :func:`curvimesh.triangulate.metric_delaunay` in the plane,
+   folds first), with the same middle nodes. Where a triangle is still invalid,
+   its corners are taken out of the layer and the flips are made again from the
+   input (:func:`flipped`). The flips start from the straight triangulation and
+   stop on its folds where it folds most, across a layer sampled row by row
+   (:mod:`curvimesh.rows`), whose rows are staggered;
+3. moves the middle nodes of the layer's edges to their chart nodes where that
    shortens them, all together, then back on the edges of the triangles left
    invalid, until none is (:func:`renode`).
 
 The result is valid: with no point left in a layer, the input. On
-``bench/robustness/u58`` (2,000:1 about an ellipse; 1,698 of its 4,099 points in
-the layer), after the curving stage: the layer's edges over 1.5 fall from 2,852
-to 1,997 (of 4,905), 1,041 edges flipped and 392 nodes moved, in 2.2 s. A P2
-edge cannot follow such a layer closely: at the ellipse's ends a unit edge along
-a row strays 0.25 – 0.7 short sizes from it at its quarter points (the middle
-node on the row), and the chart's triangles there, one row thick, fold.
+``bench/robustness/u58`` (2,000:1 about an ellipse) sampled row by row, after
+the curving stage the layer's edges run up to 15 long; triangulated again in its
+chart, none is over 1.4 after the later stages (the flips alone left 13.3). A P2
+edge cannot follow such a layer closely where its points are far apart along it:
+at the ellipse's ends a unit edge along a row strays 0.25 – 0.7 short sizes from
+it at its quarter points (the middle node on the row), and the chart's triangles
+there, one row thick, fold from a base of 0.8 long sizes.
 """
 
 from __future__ import annotations
@@ -50,7 +61,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.interpolate import CubicSpline
-from scipy.spatial import cKDTree
+from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from curvimesh.bezier import valid_exact
 from curvimesh.cores import CORE_MIN_SAG, arc_lengths, layer_cores, points_on_core
@@ -62,12 +73,13 @@ from curvimesh.mesh import (
     edge_nodes,
     flip_candidates,
     independent_flips,
+    is_conforming,
     p1_edges,
     p1_of,
 )
 from curvimesh.metric import MetricField, eigen_frame, layer_sag
 from curvimesh.quality import edge_lengths_fast
-from curvimesh.triangulate import in_circle
+from curvimesh.triangulate import delaunay_flips, in_circle, insert_segments, orient
 
 #: Gauss–Legendre rule of the chart's metric lengths across the layer: 5 nodes on each
 #: piece of the segment between its fractions 0, 2⁻¹⁰, 2⁻⁹, …, 1/2, 1. The size is least
@@ -292,11 +304,6 @@ def _quad_coordinates(layers: Layers, quads: NDArray) -> NDArray:
     return np.stack([s, n], axis=-1)
 
 
-def _orient(p: NDArray, q: NDArray, r: NDArray) -> NDArray:
-    """Twice the signed area of triangles (p, q, r), each ``(k, 2)``."""
-    return (q[:, 0] - p[:, 0]) * (r[:, 1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (r[:, 0] - p[:, 0])
-
-
 def lawson_flips(
     layers: Layers, p1: Mesh, in_layer: NDArray, max_rounds: int = MAX_ROUNDS
 ) -> NDArray:
@@ -321,9 +328,9 @@ def lawson_flips(
         pa, pb, pc, pd = xy[:, 0], xy[:, 1], xy[:, 2], xy[:, 3]
         det = in_circle(pa, pb, pc, pd)
         scale = ((pa - pd) ** 2).sum(1)
-        convex = (_orient(pa, pd, pc) > 0) & (_orient(pd, pb, pc) > 0)
+        convex = (orient(pa, pd, pc) > 0) & (orient(pd, pb, pc) > 0)
         # a fold (a triangle inverted in the chart) is undone first, whatever the circles
-        folded = (_orient(pa, pb, pc) <= 0) | (_orient(pb, pa, pd) <= 0)
+        folded = (orient(pa, pb, pc) <= 0) | (orient(pb, pa, pd) <= 0)
         viol = convex & (folded | (det > 1e-10 * scale**2))
         cand = idx[viol]
         if cand.size == 0:
@@ -431,17 +438,20 @@ def _valid_nodes(
 
 @dataclass(frozen=True)
 class ChartResult:
-    """The mesh after the stage, its edges that the input did not have, the edge nodes
-    moved to their chart nodes, and how many times the flips were made."""
+    """The mesh after the stage, the triangles its layers were triangulated again with
+    in their charts, its edges that the input did not have, the edge nodes moved to
+    their chart nodes, and how many times the flips were made."""
 
     mesh: Mesh
     edges: int
     renoded: int
     tries: int
+    rebuilt: int = 0
 
 
 def chart_flips(field: MetricField, mesh: Mesh) -> ChartResult:
-    """The stage of the module docstring on a valid P2 ``mesh``: the flips
+    """The stage of the module docstring on a valid P2 ``mesh``: each layer triangulated
+    again in its chart (:func:`rebuilt`), the flips where that was not made
     (:func:`flipped`), then the chart nodes of the layers' edges (:func:`renode`).
     The result is valid and has the same vertices."""
     cores = layer_cores(field)
@@ -451,9 +461,10 @@ def chart_flips(field: MetricField, mesh: Mesh) -> ChartResult:
     layers = layer_points(field, pts, [chart_of(field, line, closed) for line, closed in cores])
     if (layers.which >= 0).sum() < 4:
         return ChartResult(mesh, 0, 0, 0)
-    out, edges, tries = flipped(field, layers, mesh)
+    out, made = rebuilt(field, layers, mesh)
+    out, edges, tries = flipped(field, layers, out)
     out, moved = renode(field, layers, out)
-    return ChartResult(out, edges, moved, tries)
+    return ChartResult(out, edges, moved, tries, made)
 
 
 def flipped(field: MetricField, layers: Layers, mesh: Mesh) -> tuple[Mesh, int, int]:
@@ -492,16 +503,301 @@ def flipped(field: MetricField, layers: Layers, mesh: Mesh) -> tuple[Mesh, int, 
     return mesh, 0, tries
 
 
+#: Most times a layer is triangulated again in its chart (:func:`rebuilt`), with the
+#: points about the triangles left invalid taken out of it each time.
+REBUILD_TRIES = 8
+
+
+def _boundary_edges(tris: NDArray) -> NDArray:
+    """The boundary of the triangles ``tris`` ``(m, 3)`` (counter-clockwise): their edges
+    a → b ``(k, 2)`` held by no other of them, as they run in their triangle (the
+    triangles on their left)."""
+    de = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    big = int(tris.max()) + 1
+    return de[~np.isin(de[:, 1] * big + de[:, 0], de[:, 0] * big + de[:, 1])]
+
+
+def _fill(tris: NDArray, seed: NDArray, wall: NDArray, window: NDArray) -> NDArray:
+    """``(m,)`` the triangles of ``tris`` ``(m, 3)`` reached from the ``seed`` ones through
+    edges that are not ``wall`` edges ``(k, 2)`` (either way round), only ever into
+    triangles of the ``window`` ``(m,)``."""
+    mesh = Mesh(np.zeros((int(tris.max()) + 1, 2)), tris)
+    big = len(mesh.points)
+    e = np.sort(mesh.edges, axis=1)
+    w = np.sort(wall, axis=1)
+    open_ = ~np.isin(e[:, 0] * big + e[:, 1], w[:, 0] * big + w[:, 1]) & (mesh.edge_tris[:, 1] >= 0)
+    t1, t2 = mesh.edge_tris[open_, 0], mesh.edge_tris[open_, 1]
+    inside = seed & window
+    while True:
+        grow = np.concatenate([t2[inside[t1] & ~inside[t2]], t1[inside[t2] & ~inside[t1]]])
+        grow = grow[window[grow]]
+        if grow.size == 0:
+            return inside
+        inside[grow] = True
+
+
+def chart_triangulation(
+    s: NDArray, n: NDArray, length: float, closed: bool, polygon: NDArray
+) -> tuple[NDArray, NDArray]:
+    """The constrained Delaunay triangulation ``(m, 3)`` (counter-clockwise) of points of
+    chart coordinates s, n ``(k,)`` inside ``polygon``: directed edges ``(j, 2)`` with
+    the inside on their left (one or more loops; around a closed core of the given
+    metric length, the points' s taken modulo it). Delaunay's triangulation of the
+    points (Qhull), each polygon edge inserted
+    (:func:`curvimesh.triangulate.insert_segments`), the triangles reached from the
+    polygon's left sides without crossing it kept and flipped towards Delaunay
+    (:func:`curvimesh.triangulate.delaunay_flips`). Around a closed core, this is
+    made on three copies of the points side by side (s − length, s, s + length),
+    from the middle copy. Returns the triangles and the polygon edges that could
+    not be inserted (then no triangle)."""
+    k = len(s)
+    if closed:
+        xy = np.column_stack([np.concatenate([s - length, s, s + length]), np.tile(n, 3)])
+        ds = np.mod(s[polygon[:, 1]] - s[polygon[:, 0]] + 0.5 * length, length) - 0.5 * length
+        jump = np.rint((s[polygon[:, 0]] + ds - s[polygon[:, 1]]) / length).astype(np.int64)
+        copies = []
+        for c in range(3):
+            ok = (c + jump >= 0) & (c + jump <= 2)
+            ends = [c * k + polygon[ok, 0], (c + jump[ok]) * k + polygon[ok, 1]]
+            copies.append(np.column_stack(ends))
+        segs = np.concatenate(copies)
+    else:
+        xy, segs = np.column_stack([s, n]), polygon
+    none = np.zeros((0, 3), dtype=np.int64)
+    try:
+        tris = Delaunay(xy).simplices.astype(np.int64)
+    except QhullError:
+        return none, polygon
+    area = orient(xy[tris[:, 0]], xy[tris[:, 1]], xy[tris[:, 2]])
+    tris = np.where((area < 0)[:, None], tris[:, [0, 2, 1]], tris)[area != 0]
+    tris, failed = insert_segments(xy, tris, segs)
+    if len(failed):
+        return none, failed % k
+    # the triangles on the left of the polygon's edges, and those reached from them
+    de = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    big = len(xy)
+    seed = np.isin(de[:, 0] * big + de[:, 1], segs[:, 0] * big + segs[:, 1])
+    seed = seed.reshape(3, -1).any(axis=0)
+    middle = xy[tris].mean(axis=1)[:, 0]
+    # three copies: the walls end at the ends of the copies, so stay well inside them
+    window = (middle >= -0.5 * length) & (middle < 1.5 * length)
+    window |= not closed
+    inside = tris[_fill(tris, seed, segs, window)]
+    inside = delaunay_flips(xy, inside)
+    if closed:
+        middle = xy[inside].mean(axis=1)[:, 0]
+        inside = inside[(middle >= 0.0) & (middle < length)] % k
+    return inside, np.zeros((0, 2), dtype=np.int64)
+
+
+def _node_choices(field: MetricField, layers: Layers, pts: NDArray, a: int, b: int) -> list:
+    """Middle nodes to try on the edge a-b of a layer: its chart node, its shortest
+    parabola's, its straight midpoint."""
+    return [
+        _chart_nodes(field, layers, np.array([[a, b]]))[0],
+        shortest_parabola(field, pts[[a]], pts[[b]], exact_length=False).mid[0],
+        0.5 * (pts[a] + pts[b]),
+    ]
+
+
+def _repaired(
+    field: MetricField,
+    layers: Layers,
+    pts: NDArray,
+    mesh: Mesh,
+    mids: NDArray,
+    free: NDArray,
+    bad: NDArray,
+) -> tuple[Mesh, NDArray, NDArray]:
+    """A P1 ``mesh`` whose triangles ``bad`` are invalid as P2 with the middle nodes
+    ``mids`` ``(E, 2)``, after flips of their ``free`` ``(E,)`` edges (convex in the
+    chart) where both triangles after the flip are valid, the new edge with one of
+    :func:`_node_choices`; rounds while one is made. Returns the mesh, its nodes and
+    its triangles still invalid. Few (the layer's outer rows): a loop."""
+    n = len(pts)
+    tris = [tuple(t) for t in np.asarray(mesh.corners).tolist()]
+    ends = np.sort(mesh.edges, axis=1)
+    node = dict(zip((ends[:, 0] * n + ends[:, 1]).tolist(), mids, strict=True))
+    frozen = set((ends[~free, 0] * n + ends[~free, 1]).tolist())
+    watch = set(bad.tolist())
+
+    def key(a: int, b: int) -> int:
+        return min(a, b) * n + max(a, b)
+
+    def valid(*ts: tuple[int, int, int]) -> bool:
+        nodes = [
+            [pts[a], pts[b], pts[c], node[key(a, b)], node[key(b, c)], node[key(c, a)]]
+            for a, b, c in ts
+        ]
+        return bool(valid_exact(np.array(nodes)).all())
+
+    while True:
+        holders: dict[int, list[int]] = {}
+        for i, t in enumerate(tris):
+            for j in range(3):
+                holders.setdefault(key(t[j], t[(j + 1) % 3]), []).append(i)
+        bad_now = sorted(i for i in watch if not valid(tris[i]))
+        changed: set[int] = set()
+        for i in bad_now:
+            if i in changed:
+                continue
+            for j in range(3):
+                a, b, c = tris[i][j], tris[i][(j + 1) % 3], tris[i][(j + 2) % 3]
+                pair = holders[key(a, b)]
+                if key(a, b) in frozen or len(pair) != 2:
+                    continue
+                i2 = pair[0] if pair[1] == i else pair[1]
+                if i2 in changed:
+                    continue
+                d = next(v for v in tris[i2] if v not in (a, b))
+                if key(c, d) in node:  # joined outside the layer already
+                    continue
+                pa, pd, pb, pc = _quad_coordinates(layers, np.array([[a, d, b, c]]))[0]
+                if orient(pa, pd, pc) <= 0 or orient(pd, pb, pc) <= 0:
+                    continue
+                for choice in _node_choices(field, layers, pts, c, d):
+                    node[key(c, d)] = choice
+                    if valid((a, d, c), (d, b, c)):
+                        tris[i], tris[i2] = (a, d, c), (d, b, c)
+                        changed.update((i, i2))
+                        watch.update((i, i2))
+                        break
+                else:
+                    del node[key(c, d)]
+                    continue
+                break
+        if not changed:
+            break
+    out = Mesh(pts, np.array(tris, dtype=np.int64), mesh.box)
+    ends = np.sort(out.edges, axis=1)
+    mids = np.array([node[k] for k in (ends[:, 0] * n + ends[:, 1]).tolist()])
+    still = np.array(sorted(i for i in watch if not valid(tris[i])), dtype=np.int64)
+    return out, mids, still
+
+
+#: Length from which an edge counts against a layer's new triangulation: the top of
+#: the unit range.
+LONG_EDGE = 1.4
+
+
+def _long_edges(field: MetricField, mesh: Mesh, tris: NDArray) -> int:
+    """How many edges of the triangles ``tris`` ``(m, 3)`` (corners of the P2 ``mesh``,
+    numbered as in :func:`curvimesh.mesh.p1_of`) are longer than :data:`LONG_EDGE`."""
+    ends = np.sort(p1_edges(mesh), axis=1)
+    n = len(mesh.vertex_ids)
+    e = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
+    at = np.flatnonzero(np.isin(ends[:, 0] * n + ends[:, 1], e[:, 0] * n + e[:, 1]))
+    pts = mesh.points
+    x0, x1, xm = pts[mesh.edges[at, 0]], pts[mesh.edges[at, 1]], pts[mesh.edge_mid[at]]
+    return int((edge_lengths_fast(field, x0, x1, xm, remember=False) > LONG_EDGE).sum())
+
+
+def _near(corners: NDArray, points: NDArray) -> NDArray:
+    """The corners of the triangles ``corners`` ``(m, 3)`` at any of ``points``."""
+    return np.unique(corners[np.isin(corners, points).any(axis=1)])
+
+
+def _rebuilt_layer(field: MetricField, layers: Layers, mesh: Mesh, k: int) -> tuple[Mesh, int, int]:
+    """:func:`rebuilt` for the layer of chart k: the mesh, the triangles made, the tries."""
+    p1 = p1_of(mesh)
+    pts = np.asarray(p1.points)
+    corners = np.asarray(p1.corners)
+    npts = len(pts)
+    chart = layers.charts[k]
+    inner = (layers.which == k) & ~p1.boundary_vertices
+    store = edge_nodes(mesh)
+    for tries in range(1, REBUILD_TRIES + 1):
+        if inner.sum() < 4:
+            break
+        region = inner[corners].any(axis=1)
+        ring = np.unique(corners[region])
+        ring = ring[~inner[ring]]
+        rs, rn, foot_in = to_chart(field, chart, pts[ring])
+        if not foot_in.all():  # past an open core's end
+            inner[_near(corners, ring[~foot_in])] = False
+            continue
+        ids = np.concatenate([np.flatnonzero(inner), ring])
+        local = np.full(npts, -1, dtype=np.int64)
+        local[ids] = np.arange(len(ids))
+        s = np.concatenate([layers.s[inner], rs])
+        s = np.mod(s, chart.length) if chart.closed else s
+        n = np.concatenate([layers.n[inner], rn])
+        polygon = _boundary_edges(corners[region])
+        tris, failed = chart_triangulation(s, n, chart.length, chart.closed, local[polygon])
+        if len(failed):
+            inner[_near(corners, ids[failed.ravel()])] = False
+            continue
+        new = ids[tris]
+        if len(new) != region.sum():  # a point of the layer outside the polygon
+            lost = inner.copy()
+            lost[new.ravel()] = False
+            if not lost.any():
+                break
+            inner[_near(corners, np.flatnonzero(lost))] = False
+            continue
+        cur = Mesh(pts, np.vstack([corners[~region], new]), p1.box)
+        if not is_conforming(cur) or len(cur.boundary_edges) != len(p1.boundary_edges):
+            break
+        ext = Layers(layers.charts, layers.which.copy(), layers.s.copy(), layers.n.copy())
+        ext.which[ring], ext.s[ring], ext.n[ring] = k, rs, rn
+        pos, known = store.find(store.key(cur.edges[:, 0], cur.edges[:, 1]))
+        mids = np.where(known[:, None], store.mid[pos], 0.0)
+        # the polygon's edges (and the box's sides) keep their nodes
+        ends = np.sort(cur.edges, axis=1)
+        wall = np.sort(polygon, axis=1)
+        free = ~np.isin(ends[:, 0] * npts + ends[:, 1], wall[:, 0] * npts + wall[:, 1])
+        free &= ~boundary_edge_mask(cur)
+        fresh = np.zeros(len(cur.edges), dtype=bool)
+        fresh[cur.tri_edges[len(cur.corners) - len(new) :].ravel()] = True
+        fresh = (fresh & free) | ~known
+        mids, bad = _valid_nodes(field, ext, cur, mids, fresh)
+        if bad.size:
+            cur, mids, bad = _repaired(field, ext, pts, cur, mids, fresh, bad)
+        if bad.size == 0:
+            out = assemble_p2(pts, cur, mids)
+            if _long_edges(field, out, new) < _long_edges(field, mesh, corners[region]):
+                return out, len(new), tries
+            break
+        inner[_near(np.asarray(cur.corners), np.asarray(cur.corners)[bad].ravel())] = False
+    return mesh, 0, tries
+
+
+def rebuilt(field: MetricField, layers: Layers, mesh: Mesh) -> tuple[Mesh, int]:
+    """A valid P2 ``mesh`` with each of its ``layers`` triangulated again in its chart, and
+    how many triangles were made so.
+
+    The triangles at the points of a layer (their star) are replaced by the
+    constrained Delaunay triangulation, in the layer's chart, of those points and the
+    other corners of the star, inside the star's boundary (:func:`chart_triangulation`;
+    the boundary's edges keep their nodes). Made from the chart's coordinates alone,
+    the triangulation does not start from the straight one, which folds across a layer
+    that curves (:func:`lawson_flips` stops on the folds of a layer sampled row by row,
+    :mod:`curvimesh.rows`). Its new edges take their chart nodes, or, where that leaves
+    a triangle invalid, their shortest parabolas' (:func:`_valid_nodes`); the triangles
+    still invalid (decided exactly) have their edges flipped where that makes both
+    triangles valid (:func:`_repaired`). Where some are left, or the boundary cannot
+    be kept, the points about them are taken out of the layer and the triangulation
+    made again, at most :data:`REBUILD_TRIES` times; then the layer keeps its mesh."""
+    made = 0
+    for k in range(len(layers.charts)):
+        mesh, count, _ = _rebuilt_layer(field, layers, mesh, k)
+        made += count
+    return mesh, made
+
+
 __all__ = [
+    "REBUILD_TRIES",
     "Chart",
     "ChartResult",
     "Layers",
     "chart_flips",
     "chart_of",
+    "chart_triangulation",
     "flipped",
     "from_chart",
     "lawson_flips",
     "layer_points",
+    "rebuilt",
     "renode",
     "segment_lengths",
     "to_chart",

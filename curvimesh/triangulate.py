@@ -285,6 +285,138 @@ def in_circle(a: NDArray, b: NDArray, c: NDArray, d: NDArray) -> NDArray:
     )
 
 
+def delaunay_flips(xy: NDArray, tris: NDArray, *, max_rounds: int = 200) -> NDArray[np.int64]:
+    """Lawson's flips of the interior edges of a planar triangulation ``tris`` ``(m, 3)``
+    (counter-clockwise) of points ``xy`` ``(n, 2)`` towards Delaunay: the edge a-b of
+    the convex quad a-d-b-c goes to c-d when d lies inside the circle of (a, b, c)
+    (:func:`in_circle`, beyond 1e-10 of the squared scale). Its boundary edges are
+    never flipped, so a triangulation of a polygon becomes its constrained Delaunay
+    triangulation (Lee and Lin 1986). Rounds of non-conflicting flips."""
+    xy = np.asarray(xy, dtype=float)
+    tris = np.array(tris, dtype=np.int64)
+    for _ in range(max_rounds):
+        _, t1, t2, a, b, c, d = flip_candidates(Mesh(xy, tris))
+        pa, pb, pc, pd = xy[a], xy[b], xy[c], xy[d]
+        det = in_circle(pa, pb, pc, pd)
+        scale = ((pa - pd) ** 2).sum(1)
+        convex = (orient(pa, pd, pc) > 0) & (orient(pd, pb, pc) > 0)
+        cand = np.flatnonzero(convex & (det > 1e-10 * scale**2))
+        if cand.size == 0:
+            break
+        priority = det[cand] / scale[cand] ** 2
+        chosen = cand[independent_flips(t1[cand], t2[cand], priority, len(tris))]
+        tris = apply_flips(tris, chosen, t1, t2, a, b, c, d)
+    return tris
+
+
+def orient(p: NDArray, q: NDArray, r: NDArray) -> NDArray:
+    """Twice the signed area of the triangles (p, q, r), each ``(..., 2)``: positive when
+    counter-clockwise."""
+    return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (
+        r[..., 0] - p[..., 0]
+    )
+
+
+def _crosses(xy: NDArray, a: int, b: int, p: NDArray, q: NDArray) -> NDArray:
+    """``(k,)`` whether the edges p-q (corner indices ``(k,)``) cross the open segment a-b
+    at a point inside both."""
+    pa, pb, pp, pq = xy[a], xy[b], xy[p], xy[q]
+    apart = orient(pa, pb, pp) * orient(pa, pb, pq) < 0
+    return apart & (orient(pp, pq, pa) * orient(pp, pq, pb) < 0)
+
+
+def _sloan(xy: NDArray, tris: list[list[int]], a: int, b: int) -> list[list[int]] | None:
+    """The triangles ``tris`` (counter-clockwise) that the segment a-b crosses, flipped
+    until it is an edge of theirs: each crossed edge in turn, flipped where its quad is
+    strictly convex, taken again later while it or the new diagonal still crosses
+    (Sloan 1993, which ends). None after too many turns."""
+    holders: dict[tuple[int, int], int] = {}
+    for i, t in enumerate(tris):
+        for j in range(3):
+            holders[t[j], t[(j + 1) % 3]] = i
+    queue = []
+    for t in tris:
+        for j in range(3):
+            p, q = t[j], t[(j + 1) % 3]
+            if p < q and (q, p) in holders and _crosses(xy, a, b, np.array([p]), np.array([q]))[0]:
+                queue.append((p, q))
+    turns = 0
+    while queue:
+        turns += 1
+        if turns > 50 * (len(tris) + 1) ** 2:
+            return None
+        p, q = queue.pop(0)
+        i1, i2 = holders[p, q], holders[q, p]
+        r = next(v for v in tris[i1] if v not in (p, q))
+        s_ = next(v for v in tris[i2] if v not in (p, q))
+        if orient(xy[p], xy[s_], xy[r]) <= 0 or orient(xy[s_], xy[q], xy[r]) <= 0:
+            queue.append((p, q))
+            continue
+        for t in (tris[i1], tris[i2]):
+            for j in range(3):
+                del holders[t[j], t[(j + 1) % 3]]
+        tris[i1], tris[i2] = [p, s_, r], [s_, q, r]
+        for i in (i1, i2):
+            t = tris[i]
+            for j in range(3):
+                holders[t[j], t[(j + 1) % 3]] = i
+        if {r, s_} != {a, b} and _crosses(xy, a, b, np.array([r]), np.array([s_]))[0]:
+            queue.append((r, s_))
+    return tris
+
+
+def insert_segments(
+    xy: NDArray, tris: NDArray, segments: NDArray
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """A planar triangulation ``tris`` ``(m, 3)`` of points ``xy`` (counter-clockwise)
+    with each segment a → b of ``segments`` ``(k, 2)`` made one of its edges, in turn,
+    by flips of the triangles it crosses (:func:`_sloan`). Returns the triangles and
+    the segments that could not be inserted ``(j, 2)``: those through a point, and
+    those crossing a segment inserted before (which they would take out). Flips made
+    later (:func:`delaunay_flips`) keep only the segments on the boundary."""
+    xy = np.asarray(xy, dtype=float)
+    tris = np.array(tris, dtype=np.int64)
+    segments = np.asarray(segments, dtype=np.int64).reshape(-1, 2)
+    n = len(xy)
+    ends = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    keys = segments.min(axis=1) * n + segments.max(axis=1)
+    present = np.isin(keys, ends.min(axis=1) * n + ends.max(axis=1))
+    done = keys[present]  # the segments that are edges, which the others must not cross
+    txy = xy[tris]
+    lo_t, hi_t = txy.min(axis=1), txy.max(axis=1)
+    failed = []
+    for i in np.flatnonzero(~present).tolist():
+        a, b = segments[i].tolist()
+        pa, pb = xy[a], xy[b]
+        near = (hi_t >= np.minimum(pa, pb)).all(axis=1) & (lo_t <= np.maximum(pa, pb)).all(axis=1)
+        near = np.flatnonzero(near)
+        t = tris[near]
+        if ((t == a).any(axis=1) & (t == b).any(axis=1)).any():
+            done = np.append(done, keys[i])
+            continue
+        p, q = t.ravel(), np.roll(t, -1, axis=1).ravel()
+        cross = _crosses(xy, a, b, p, q).reshape(-1, 3)
+        walls = np.isin(np.minimum(p, q) * n + np.maximum(p, q), done).reshape(-1, 3)
+        d = pb - pa
+        v = np.unique(t)
+        v = v[(v != a) & (v != b)]
+        along = (xy[v] - pa) @ d / (d @ d)
+        on = (np.abs(orient(pa, pb, xy[v])) <= 1e-12 * (d @ d)) & (along > 0) & (along < 1)
+        crossed = cross.any(axis=1)
+        if on.any() or (cross & walls).any() or not crossed.any():
+            failed.append((a, b))
+            continue
+        flipped = _sloan(xy, t[crossed].tolist(), a, b)
+        if flipped is None:
+            failed.append((a, b))
+            continue
+        at = near[crossed]
+        tris[at] = np.array(flipped, dtype=np.int64)
+        lo_t[at], hi_t[at] = xy[tris[at]].min(axis=1), xy[tris[at]].max(axis=1)
+        done = np.append(done, keys[i])
+    return tris, np.array(failed, dtype=np.int64).reshape(-1, 2)
+
+
 def _in_circle_metric(pa, pb, pc, pd, m: NDArray) -> NDArray:
     """:func:`in_circle` of d against CCW (a, b, c) after the map x ↦ Lᵀx, M = L Lᵀ:
     positive when d lies inside the circumcircle of (a, b, c) in the metric M

@@ -19,8 +19,10 @@ from curvimesh import charts
 from curvimesh.adapt import SWAP_STAGES, AdaptOptions, curve, sample, swap, triangulate
 from curvimesh.bezier import valid_exact
 from curvimesh.cores import layer_cores
-from curvimesh.mesh import Mesh, p1_of
+from curvimesh.mesh import Mesh, flip_candidates, p1_of
 from curvimesh.metric import load_metric, load_metric_text
+from curvimesh.quality import edge_lengths
+from curvimesh.triangulate import in_circle, orient
 
 METRICS = Path(__file__).resolve().parent.parent / "metrics"
 
@@ -220,3 +222,101 @@ def test_the_chart_flips_keep_any_thin_ring_s_curved_mesh_valid(radius, h0, grow
         tuple(np.round(m.points[m.edge_mid[e]], 15)) for e in np.flatnonzero(m.edge_tris[:, 1] < 0)
     }
     assert sides(out) == sides(mesh)
+
+
+def _band(rng: np.random.Generator, length: float, half: float, inner: int):
+    """Points of a band of a chart: rows n = ±half with a point every unit (the top one
+    half a unit on), ``inner`` random points between; and its boundary with the band on
+    the left (the bottom row forwards, the top row backwards, each closing round)."""
+    k = int(length)
+    bottom = np.column_stack([np.arange(k, dtype=float), np.full(k, -half)])
+    top = np.column_stack([np.arange(k) + 0.5, np.full(k, half)])
+    inside = np.column_stack([rng.uniform(0, length, inner), rng.uniform(-0.9, 0.9, inner) * half])
+    pts = np.vstack([bottom, top, inside])
+    i = np.arange(k)
+    polygon = np.vstack(
+        [np.column_stack([i, (i + 1) % k]), np.column_stack([k + (i + 1) % k, k + i])]
+    )
+    return pts, polygon
+
+
+def _unwrapped(pts: NDArray, tris: NDArray, length: float) -> NDArray:
+    """Chart coordinates ``(m, 3, 2)`` of triangles round a closed core, s measured from
+    each first corner's."""
+    xy = pts[tris]
+    s0 = xy[:, :1, 0]
+    xy[..., 0] = s0 + np.mod(xy[..., 0] - s0 + 0.5 * length, length) - 0.5 * length
+    return xy
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(12, 40), st.floats(1.0, 4.0), st.floats(0.5, 1.5))
+def test_the_chart_triangulation_of_a_band_round_a_closed_core_covers_it_once(
+    seed, length, half, density
+):
+    """A band |n| ≤ half round a closed core of metric length L, its rows' points on its
+    boundary a unit apart and random points inside (0.5 – 1.5 per unit of area, as a
+    layer's): the triangles cover it once (their areas add up to 2 half L, every one
+    counter-clockwise), use every point, hold every boundary edge, and no edge inside
+    has the fourth corner of its quad in the circle of a triangle (constrained
+    Delaunay)."""
+    rng = np.random.default_rng(seed)
+    pts, polygon = _band(rng, float(length), half, int(density * 2 * half * length))
+    tris, failed = charts.chart_triangulation(pts[:, 0], pts[:, 1], float(length), True, polygon)
+    assert len(failed) == 0
+    xy = _unwrapped(pts, tris, float(length))
+    area = orient(xy[:, 0], xy[:, 1], xy[:, 2])
+    assert (area > 0).all()
+    assert 0.5 * area.sum() == pytest.approx(2 * half * length, rel=1e-9)
+    assert set(tris.ravel().tolist()) == set(range(len(pts)))
+    mesh = Mesh(np.zeros((len(pts), 2)), tris)
+    edges = set(map(tuple, np.sort(mesh.edges, axis=1).tolist()))
+    assert set(map(tuple, np.sort(polygon, axis=1).tolist())) <= edges
+    _, _, _, a, b, c, d = flip_candidates(mesh)
+    quad = _unwrapped(pts, np.column_stack([a, b, c, d]), float(length))
+    det = in_circle(quad[:, 0], quad[:, 1], quad[:, 2], quad[:, 3])
+    scale = ((quad[:, 0] - quad[:, 3]) ** 2).sum(1)
+    assert (det <= 1e-9 * scale**2).all()
+
+
+def test_the_chart_triangulation_of_a_rectangle_keeps_to_it():
+    """An open chart: the rectangle [0, 10] × [−2, 2], its sides' points a unit apart
+    and 60 points inside, is covered once (area 40) by triangles on its points alone."""
+    rng = np.random.default_rng(7)
+    ring = [(float(x), -2.0) for x in range(10)] + [(10.0, float(y)) for y in range(-2, 2)]
+    ring += [(float(x), 2.0) for x in range(10, 0, -1)]
+    ring += [(0.0, float(y)) for y in range(2, -2, -1)]
+    k = len(ring)
+    pts = np.vstack([np.array(ring), rng.uniform([0.2, -1.8], [9.8, 1.8], (60, 2))])
+    polygon = np.column_stack([np.arange(k), (np.arange(k) + 1) % k])
+    tris, failed = charts.chart_triangulation(pts[:, 0], pts[:, 1], 10.0, False, polygon)
+    assert len(failed) == 0
+    area = orient(pts[tris[:, 0]], pts[tris[:, 1]], pts[tris[:, 2]])
+    assert (area > 0).all() and 0.5 * area.sum() == pytest.approx(40.0, rel=1e-12)
+    assert len(tris) == 2 * 60 + k - 2  # Euler: 2 inner + boundary − 2
+
+
+def test_a_ring_sampled_row_by_row_is_triangulated_again_in_its_chart(ring):
+    """The ring sampled row by row (:mod:`curvimesh.rows`): after the first three stages
+    the edges among its layer's points run up to 25 long, hundreds over 1.5, the
+    straight triangulation joining points of a row many columns apart under its chords.
+    Triangulated again in the chart, none is over 1.5, the mesh is valid (decided
+    exactly) and keeps its vertices and its number of edges."""
+    fld, _ = ring
+    opt = AdaptOptions(sampling=replace(AdaptOptions().sampling, rows=True))
+    mesh = curve(fld, triangulate(sample(fld, opt), fld, opt), opt)
+    pts = np.asarray(p1_of(mesh).points)
+    layers = charts.layer_points(fld, pts, [charts.chart_of(fld, *c) for c in layer_cores(fld)])
+
+    def layer_lengths(m: Mesh) -> NDArray:
+        inside = (layers.which[p1_of(m).edges] >= 0).all(axis=1)
+        e = m.edges[inside]
+        return edge_lengths(fld, m.points, e, m.edge_mid[inside])
+
+    before = layer_lengths(mesh)
+    out, made = charts.rebuilt(fld, layers, mesh)
+    after = layer_lengths(out)
+    assert (before > 1.5).sum() > 300 and made > 500
+    assert after.max() <= 1.5 and len(after) == len(before)
+    assert valid_exact(out.points[out.triangles]).all()
+    np.testing.assert_array_equal(out.points[out.vertex_ids], mesh.points[mesh.vertex_ids])

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from test_cores import ring
 
 from curvimesh import rows, sampling
-from curvimesh.adapt import AdaptOptions, adapt, retries
+from curvimesh.adapt import AdaptOptions, adapt, first_run, retries
 from curvimesh.boundary import discretize_box
 from curvimesh.cli import main
 from curvimesh.geodesic import shortest_parabola
@@ -126,12 +126,17 @@ def test_the_sampling_with_rows_starts_from_them():
     assert there.sum() <= 2  # the frontal columns are elsewhere (but where rows start)
 
 
-def test_adapt_retries_with_rows_only_where_there_are_thin_curved_layers():
-    with_layer = load_metric_text(RING)
-    label, again = retries(AdaptOptions(), with_layer)[0]
-    assert "row by row" in label and again.sampling.rows
-    assert not any(o.sampling.rows for _, o in retries(AdaptOptions(rows=False), with_layer))
-    assert not any(o.sampling.rows for _, o in retries(AdaptOptions(), load_metric_text(CONSTANT)))
+def test_adapt_samples_row_by_row_first_only_where_there_are_thin_curved_layers():
+    with_layer, constant = load_metric_text(RING), load_metric_text(CONSTANT)
+    first = first_run(AdaptOptions(), with_layer)
+    assert first.sampling.rows
+    label, again = retries(first, with_layer)[0]
+    assert "by the fronts" in label and not again.sampling.rows
+    assert not first_run(AdaptOptions(rows=False), with_layer).sampling.rows
+    assert not first_run(AdaptOptions(cores=False), with_layer).sampling.rows
+    assert not first_run(AdaptOptions(straight=True), with_layer).sampling.rows
+    assert first_run(AdaptOptions(), constant) == AdaptOptions()
+    assert not any(o.sampling.rows for _, o in retries(AdaptOptions(), constant))
 
 
 def test_a_sine_layer_sampled_row_by_row_is_within_the_unit_range():

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from curvimesh import kernels, triangulate
 from curvimesh.fill import fill_gaps
+from curvimesh.mesh import Mesh, apply_flips, flip_candidates, independent_flips, is_conforming
 from curvimesh.metric import load_metric
 from curvimesh.triangulate import (
     canonical_triangles,
@@ -239,3 +240,78 @@ def test_gap_filling_gives_the_same_points_without_insertion(name, monkeypatch, 
     monkeypatch.setattr(triangulate, "delaunay_insert", lambda mesh, new: None)
     triangulate._LAST.pop(fld, None)
     np.testing.assert_array_equal(fill_gaps(fld, pts, opt), with_insertion)
+
+
+def _ccw(xy: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    area = triangulate.orient(xy[tris[:, 0]], xy[tris[:, 1]], xy[tris[:, 2]])
+    return np.where((area < 0)[:, None], tris[:, [0, 2, 1]], tris)
+
+
+def _edge_set(tris: np.ndarray) -> set[tuple[int, int]]:
+    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    return set(map(tuple, np.sort(e, axis=1).tolist()))
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(20, 200), st.integers(4, 12))
+def test_inserted_segments_become_edges_of_a_triangulation_of_the_same_hull(seed, n, k):
+    """A polygon of k random points round the middle (a star about it: the i-th at an
+    angle in 2π [i, i + 0.8) / k, so no gap reaches π and no two sides cross), n random
+    points: each of its sides becomes an edge, the triangles stay counter-clockwise and
+    conforming, and there are as many as before (2 n − h − 2 for n points, h on the
+    hull: Euler), covering the same area."""
+    from scipy.spatial import Delaunay
+
+    rng = np.random.default_rng(seed)
+    angle = 2 * np.pi * (np.arange(k) + rng.uniform(0, 0.8, k)) / k
+    radius = rng.uniform(0.2, 0.45, k)
+    star = 0.5 + radius[:, None] * np.column_stack([np.cos(angle), np.sin(angle)])
+    xy = np.vstack([star, rng.uniform(0, 1, (n, 2))])
+    tris = _ccw(xy, Delaunay(xy).simplices.astype(np.int64))
+    sides = np.column_stack([np.arange(k), (np.arange(k) + 1) % k])
+    out, failed = triangulate.insert_segments(xy, tris, sides)
+    assert len(failed) == 0
+    assert len(out) == len(tris)
+    area = triangulate.orient(xy[out[:, 0]], xy[out[:, 1]], xy[out[:, 2]])
+    assert (area > 0).all()
+    ref = triangulate.orient(xy[tris[:, 0]], xy[tris[:, 1]], xy[tris[:, 2]])
+    assert area.sum() == pytest.approx(ref.sum(), rel=1e-12)
+    assert is_conforming(Mesh(xy, out))
+    assert set(map(tuple, np.sort(sides, axis=1).tolist())) <= _edge_set(out)
+
+
+def test_a_segment_through_a_point_or_across_another_is_refused():
+    """(0, 0) – (1, 0) passes through (0.5, 0); of the two diagonals of the unit square
+    (two points inside, off both), the second is refused, the first inserted."""
+    xy = np.array([[0, 0], [1, 0], [0.5, 0], [0.5, 0.5], [0.5, -0.5], [0.2, 0.3], [0.8, -0.3]])
+    tris = _ccw(xy, np.array([[0, 2, 3], [2, 1, 3], [0, 4, 2], [2, 4, 1], [0, 3, 5], [1, 4, 6]]))
+    _, failed = triangulate.insert_segments(xy, tris, np.array([[0, 1]]))
+    assert failed.tolist() == [[0, 1]]
+    xy = np.array([[0, 0], [1, 0], [1, 1], [0, 1], [0.6, 0.3], [0.3, 0.75]], dtype=float)
+    from scipy.spatial import Delaunay
+
+    tris = _ccw(xy, Delaunay(xy).simplices.astype(np.int64))
+    out, failed = triangulate.insert_segments(xy, tris, np.array([[0, 2], [1, 3]]))
+    assert failed.tolist() == [[1, 3]]
+    assert (0, 2) in _edge_set(out)
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(10, 150))
+def test_lawsons_flips_reach_qhulls_delaunay_triangulation(seed, n):
+    """From any triangulation of random points (Delaunay's with a third of its convex
+    quads' diagonals swapped) the flips reach Delaunay's (unique: random points)."""
+    from scipy.spatial import Delaunay
+
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, 1, (n, 2))
+    ref = _ccw(xy, Delaunay(xy).simplices.astype(np.int64))
+    _, t1, t2, a, b, c, d = flip_candidates(Mesh(xy, ref))
+    convex = (triangulate.orient(xy[a], xy[d], xy[c]) > 0) & (
+        triangulate.orient(xy[d], xy[b], xy[c]) > 0
+    )
+    cand = np.flatnonzero(convex & (rng.uniform(size=len(a)) < 0.33))
+    chosen = cand[independent_flips(t1[cand], t2[cand], np.zeros(len(cand)), len(ref))]
+    start = apply_flips(ref, chosen, t1, t2, a, b, c, d)
+    out = triangulate.delaunay_flips(xy, start)
+    assert _edge_set(out) == _edge_set(ref)
