@@ -3,8 +3,9 @@
 Every stage takes and returns a :class:`~curvimesh.mesh.Mesh` (a point cloud
 for ``sample``), so that the CLI can run them alone, chained through files or
 pipes, or all at once in :func:`adapt`, with the same result byte for byte
-(where :func:`adapt` made its second run and kept that mesh, the chain with
-``sample --no-hexagons`` gives it).
+(where :func:`adapt` made a further run and kept that mesh, the chain with that
+run's sampling options, ``sample --no-rows``, ``--max-sag 0.5``, ``--no-hexagons``
+or ``--seed``, gives it).
 """
 
 from __future__ import annotations
@@ -615,8 +616,8 @@ def first_run(opt: AdaptOptions, fld: MetricField) -> AdaptOptions:
     :func:`curvimesh.charts.rebuilt` triangulates in the chart; sampled by the fronts,
     its columns end every other one where the rows thin out, and the chart's
     triangulation of those points is not kept. Measured on the 25 fields of
-    ``bench/robustness`` and ``metrics/`` with cores (seed 0, one run each): 15 give
-    the same mesh either way; the row-by-row run meets every target where the other
+    ``bench/robustness`` and ``metrics/`` with cores (seed 0, one run each): 14 give
+    the same figures either way; the row-by-row run meets every target where the other
     leaves edges of 1.44 (``u72``), 7.3 (``u56``: 1.69 row by row) and 15.7
     (``u58``), and takes fewer triangles on six circular layers (``u45`` 1.106 →
     1.016 times the ideal count); on ``u74`` both runs leave long edges (8.7 row by

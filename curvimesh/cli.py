@@ -18,6 +18,7 @@ import threading
 import time
 import traceback
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -236,8 +237,8 @@ def rows_option(fn: Callable) -> Callable:
         "no_rows",
         is_flag=True,
         help=(
-            "No further run with thin curved layers sampled row by row, each row spaced "
-            "by its own parabolas, when the first leaves an edge longer than 1.5."
+            "Sample thin curved layers by the fronts like the rest, not row by row from "
+            "their cores, each row spaced by its own parabolas (the first run's way)."
         ),
     )(fn)
 
@@ -248,9 +249,9 @@ def retry_option(fn: Callable) -> Callable:
         "no_retry",
         is_flag=True,
         help=(
-            "No further runs (thin curved layers sampled row by row, the hexagonal lattice "
-            "kept out of them, no lattice, then these with other sampling seeds) when an "
-            "edge longer than 1.5 is left."
+            "No further runs (thin curved layers sampled by the fronts, the hexagonal "
+            "lattice kept out of them, no lattice, then these with other sampling seeds) "
+            "when an edge longer than 1.5 is left."
         ),
     )(fn)
 
@@ -277,12 +278,11 @@ def _options(
     retry: bool = True,
     rows: bool = True,
     max_sag: float | None = None,
-    sample_rows: bool = False,
     **stages: bool,
 ) -> pipeline.AdaptOptions:
     """The pipeline's options; ``stages`` switches stages by their :class:`AdaptOptions` field,
     ``max_sag`` (None: no bound) is the sampling's :attr:`SamplingOptions.max_sag`."""
-    sampling = SamplingOptions(max_sag=math.inf if max_sag is None else max_sag, rows=sample_rows)
+    sampling = SamplingOptions(max_sag=math.inf if max_sag is None else max_sag)
     return pipeline.AdaptOptions(
         seed=seed, max_vertices=max_vertices, straight=straight, retry=retry, rows=rows,
         sampling=sampling, **stages,
@@ -490,23 +490,19 @@ def geodesic(ctx: Context, metric_path, start, end, angle, length) -> None:
 @max_vertices_option
 @stage_flags("hexagons", "cores", "fill")
 @max_sag_option
-@click.option(
-    "--rows",
-    is_flag=True,
-    help=(
-        "Sample thin curved layers row by row from their cores, each row spaced by its own "
-        "parabolas (adapt's run after a first that leaves an edge longer than 1.5)."
-    ),
-)
+@rows_option
 @command
 def sample(
-    ctx: Context, metric_path, output, fmt, seed, max_vertices, stages, max_sag, rows
+    ctx: Context, metric_path, output, fmt, seed, max_vertices, stages, max_sag, no_rows
 ) -> None:
-    """Stage 1: sample points (Algorithm 1, then gap filling); writes nodes with vertex cells."""
+    """Stage 1: sample points (Algorithm 1, then gap filling); writes nodes with vertex cells.
+
+    Thin curved layers are sampled row by row from their cores, as in adapt's first
+    run (--no-rows: by the fronts, as in its run after a first that leaves an edge
+    longer than 1.5)."""
     fld = load_metric(metric_path)
-    opt = _options(
-        seed=seed, max_vertices=max_vertices, max_sag=max_sag, sample_rows=rows, **stages
-    )
+    opt = _options(seed=seed, max_vertices=max_vertices, max_sag=max_sag, **stages)
+    opt = pipeline.first_run(replace(opt, rows=not no_rows), fld)
     pipeline.check_size(fld, max_vertices)
     cloud = pipeline.sample(fld, opt)
     ctx.progress(f"sample: {len(cloud.points)} points")
@@ -633,14 +629,15 @@ def adapt(
     --no-repeat, --no-bend and --no-fit turn them off, so that the paper's method alone
     is `--no-hexagons --no-cores --no-fill --no-relocate --no-charts --no-intrinsic
     --no-insert --no-split --no-recurve --no-length-swaps --no-shift --no-remove
-    --no-repeat --no-bend --no-fit`. When an edge longer than 1.5 is left, all
-    stages run again: where the metric has thin curved layers, with them sampled
-    row by row from their cores, each row spaced by its own parabolas (--no-rows:
-    not); then with the hexagonal lattice kept out of thin curved layers (--max-sag
-    0.5); then, if one is still left, without the lattice; then these runs with the
-    sampling seeds --seed + 1000, + 2000 and + 3000 (each dropped when more than 10 %
-    of its curved edges are longer than 1.5), and the mesh with the shortest longest
-    edge is kept (--no-retry: not).
+    --no-repeat --no-bend --no-fit`. Thin curved layers are sampled row by row from
+    their cores, each row spaced by its own parabolas (--no-rows: by the fronts like
+    the rest). When an edge longer than 1.5 is left, all stages run again: where the
+    metric has thin curved layers, with them sampled by the fronts; then with the
+    hexagonal lattice kept out of thin curved layers (--max-sag 0.5); then, if one is
+    still left, without the lattice; then these runs with the sampling seeds --seed +
+    1000, + 2000 and + 3000 (each dropped when more than 10 % of its curved edges are
+    longer than 1.5), and the mesh with the shortest longest edge is kept (--no-retry:
+    not).
     """
     fld = load_metric(metric_path)
     _warn_turn(ctx, fld)

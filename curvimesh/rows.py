@@ -25,19 +25,19 @@ row thins out one point at a time as the parabolas along it shorten. The rows of
 a side end after the first one that has no fewer points than the row before: the
 fronts grow on from there.
 
-:func:`curvimesh.adapt.adapt` samples row by row in a further run, after a first
-that leaves an edge longer than 1.5 (:func:`curvimesh.adapt.retries`). Measured
-without retries, against the first run: ``u56`` 96.3 % of the edges in [0.7, 1.4]
-and edges up to 7.29 → 99.84 % and 1.76; ``u72`` (800:1 about an ellipse) 98.5 %
-and 7.90 → 99.85 % and 3.31; ``u58`` (2,000:1 about an ellipse) 92.8 % and 15.7
-→ 94.5 % and 13.3. It is not the first run because on a ring 0.05 from a side
-(``u73``, 1,500:1) it leaves edges of 11.7 where the first run meets every target:
-the layer's own Delaunay triangulation (:mod:`curvimesh.charts`) is reached by
-Lawson's flips from the metric Delaunay triangulation, and from rows whose points
-are staggered that triangulation folds in the layer's coordinates so badly that the
-flips stop with triangles from the core to the tenth row. A P2 triangle one row
-thick is valid only so long (on a 5,000:1 ring its base on the core at most 0.7 –
-0.8 long sizes, on the fourth row 1.1): capping the walk's steps so did worse.
+:func:`curvimesh.adapt.adapt` samples row by row in its first run
+(:func:`curvimesh.adapt.first_run`), and the swap stage triangulates such a layer
+again in its own coordinates (:func:`curvimesh.charts.rebuilt`), where its rows are
+lines. Measured without retries, sampled by the fronts → row by row: ``u56`` 97.6 %
+of the edges in [0.7, 1.4] and edges up to 7.29 → 99.94 % and 1.69; ``u72`` (800:1
+about an ellipse) 99.85 % and 1.44 → 100 % and 1.400; ``u58`` (2,000:1 about an
+ellipse) 92.8 % and 15.7 → 100 % and 1.400. Before the layer was triangulated
+again, Lawson's flips from the metric Delaunay triangulation towards the layer's
+own (:func:`curvimesh.charts.flipped`) stopped on its folds, which staggered rows
+make worst (a ring 0.05 from a side, ``u73``, kept edges of 11.7), and the rows
+were a later run. A P2 triangle one row thick is valid only so long (on a 5,000:1
+ring its base on the core at most 0.7 – 0.8 long sizes, on the fourth row 1.1):
+capping the walk's steps so did worse.
 """
 
 from __future__ import annotations

@@ -152,11 +152,11 @@ def test_a_sine_layer_sampled_row_by_row_is_within_the_unit_range():
     assert rep["edge_length"]["max"] < 1.8
 
 
-def test_sample_rows_on_the_command_line_writes_the_rows(tmp_path):
+def test_sample_on_the_command_line_writes_the_rows_unless_no_rows(tmp_path):
     metric = tmp_path / "ring.yaml"
     metric.write_text(RING)
     out = {}
-    for name, extra in (("rows", ["--rows"]), ("plain", [])):
+    for name, extra in (("rows", []), ("plain", ["--no-rows"])):
         path = tmp_path / f"{name}.msh"
         r = CliRunner().invoke(main, ["sample", "--metric", str(metric), "-o", str(path), *extra])
         assert r.exit_code == 0, r.output
