@@ -525,7 +525,10 @@ def adapt(
     longest clean-up stages are those of such runs, which fail); the last run is
     always finished. A run whose curved mesh is an earlier run's (the sag bound
     kept the lattice out of no layer) makes no swap stage: its result would be the
-    earlier's, which a tie keeps.
+    earlier's, which a tie keeps. A run that samples thin curved layers row by row
+    always makes its swap stage: its curved mesh joins their rows by chords (on
+    ``u45``, 40 % of its curved edges are longer than 1.5), which the swap stage's
+    first step triangulates again (:func:`curvimesh.charts.rebuilt`).
 
     When no run of the given seed ends within :data:`RETRY_ABOVE`, the same runs are
     made with other sampling seeds (:func:`_seed_retries`), before the swap stages
@@ -561,6 +564,8 @@ def adapt(
         many of its curved edges are long (or neither: "finish")."""
         i = len(runs)
         runs.append((label, again))
+        if again.sampling.rows:  # the charts stage triangulates its layers again
+            long_curved = "finish"
         if i:
             left = f"an edge of {longest():.2f} is left: " if done else ""
             progress(f"{left}all stages again {label}")

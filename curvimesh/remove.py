@@ -17,7 +17,10 @@ triangulation is admissible when every diagonal has metric length in
 quality of v's star; the admissible one with the best worst quality
 replaces the star. The mesh loses one vertex and two triangles per removal.
 
-The same removal serves the edges left longer than ``max_length``, longest
+The same removal serves the edges shorter than ``min_dist``, shortest first (two
+vertices of a thin curved layer too close for the sampling's test, which a
+triangulation in the layer's own coordinates joins, :mod:`curvimesh.charts`: 0.681
+on ``bench/robustness/u72``), and the edges left longer than ``max_length``, longest
 first: an end v of such an edge goes when its ring has an admissible
 triangulation whose worst quality is at least min(worst quality of v's
 star, ``min_quality``). Near the singular centre of concentric circles the
@@ -54,6 +57,10 @@ from curvimesh.quality import edge_lengths, metric_areas, quality_from
 #: seven, by edges up to 2.45 (quality 0.22); its ring has a triangulation in range
 #: (the mesh then 0.70 - 1.40, quality 0.62 at worst). The twelve examples do not change.
 MAX_VALENCE = 7
+
+#: How far under ``min_dist`` an edge's length must be for its ends to be removed: the
+#: targets' 0.7 to three digits.
+SHORT_SLACK = 1e-3
 
 #: Fractions of the optimal offset tried for the nodes of the new edges, in order.
 BACKTRACK = (1.0, 0.5, 0.25, 0.0)
@@ -123,9 +130,12 @@ def remove_vertices(
     max_length: float = 1.4,
     min_quality: float = 0.3,
     long_edges: bool = True,
+    short_edges: bool = True,
 ) -> RemoveResult:
-    """Remove vertices of the triangles of quality below ``min_quality`` and (with
-    ``long_edges``) of the edges longer than ``max_length`` (module docstring).
+    """Remove vertices of the triangles of quality below ``min_quality``, (with
+    ``short_edges``) of the edges shorter than ``min_dist`` (by more than
+    :data:`SHORT_SLACK` of it) and (with ``long_edges``) of the edges longer than
+    ``max_length`` (module docstring).
 
     ``mesh`` is a valid P2 mesh; the result is valid, with the removed
     vertices, their edge nodes and their triangles gone and the nodes
@@ -150,9 +160,15 @@ def remove_vertices(
         (np.array([t]), mesh.triangles[t, :3], True)
         for t in flat[np.argsort(quality[flat], kind="stable")]
     ]
+    et = mesh.edge_tris
+    if short_edges:
+        short = np.flatnonzero(length < min_dist * (1.0 - SHORT_SLACK))
+        tasks += [
+            (et[k][et[k] >= 0], mesh.edges[k], False)
+            for k in short[np.argsort(length[short], kind="stable")]
+        ]
     if long_edges:
         long = np.flatnonzero(length > max_length)
-        et = mesh.edge_tris
         tasks += [
             (et[k][et[k] >= 0], mesh.edges[k], False)
             for k in long[np.argsort(-length[long], kind="stable")]

@@ -16,12 +16,13 @@ from numpy.typing import NDArray
 from test_cores import ring as ring_yaml
 
 from curvimesh import charts
-from curvimesh.adapt import SWAP_STAGES, AdaptOptions, curve, sample, swap, triangulate
+from curvimesh.adapt import SWAP_STAGES, AdaptOptions, adapt, curve, sample, swap, triangulate
 from curvimesh.bezier import valid_exact
 from curvimesh.cores import layer_cores
 from curvimesh.mesh import Mesh, flip_candidates, p1_of
 from curvimesh.metric import load_metric, load_metric_text
 from curvimesh.quality import edge_lengths
+from curvimesh.report import mesh_report
 from curvimesh.triangulate import in_circle, orient
 
 METRICS = Path(__file__).resolve().parent.parent / "metrics"
@@ -320,3 +321,32 @@ def test_a_ring_sampled_row_by_row_is_triangulated_again_in_its_chart(ring):
     assert after.max() <= 1.5 and len(after) == len(before)
     assert valid_exact(out.points[out.triangles]).all()
     np.testing.assert_array_equal(out.points[out.vertex_ids], mesh.points[mesh.vertex_ids])
+
+
+#: 1,000:1 about the ellipse of semi-axes 0.32 and 0.22 (radius of curvature 0.15 at
+#: its ends, where the layer reaches 0.08 inside): written to test the triangulation
+#: in the chart, not in bench/robustness.
+ELLIPSE = """
+name: ellipse_1000
+domain: {box: [[0, 0], [1, 1]]}
+definitions:
+  q: sqrt(((x - 0.5)/0.32)**2 + ((y - 0.5)/0.22)**2)
+metric:
+  eigen:
+    sizes: ['min(0.0001 + 0.2*abs(q - 1), 0.08)', 0.08]
+    angle: atan2((y - 0.5)/0.22**2, (x - 0.5)/0.32**2)
+"""
+
+
+def test_a_thin_ellipse_meets_every_target_in_adapt_s_first_run():
+    """Issue 7's targets on a 1,000:1 ellipse, without further runs: valid (decided
+    exactly), every edge in [0.7, 1.5], 98 % of them in [0.7, 1.4], quality at least
+    0.3 (mean 0.8), at most 1.15 times the ideal triangle count."""
+    fld = load_metric_text(ELLIPSE)
+    res = adapt(fld, AdaptOptions(retry=False))
+    rep = mesh_report(fld, res.mesh, metric_area=res.metric_area)
+    assert rep["valid"]
+    assert 0.7 * (1 - 1e-5) <= rep["edge_length"]["min"] and rep["edge_length"]["max"] <= 1.5
+    assert rep["edge_length"]["in_range"] >= 0.98
+    assert rep["quality"]["min"] >= 0.3 and rep["quality"]["mean"] >= 0.8
+    assert rep["efficiency"] <= 1.15

@@ -142,7 +142,8 @@ def test_the_end_of_a_long_edge_is_removed_when_its_ring_has_a_unit_diagonal():
     """A 60° rhombus of unit sides (short diagonal 1, long one √3) with a vertex v
     inside, 0.32 from a sharp corner: v's edge to the far corner is 1.412, none of
     its triangles is flat (q ≥ 0.33). Removing v and joining the short diagonal
-    leaves two equilateral triangles; the long diagonal (1.73) is refused."""
+    leaves two equilateral triangles; the long diagonal (1.73) is refused. The edge
+    of 0.32 to the sharp corner is shorter than 0.7: it removes v too."""
     fld = load_metric_text("domain: {box: [[0, -0.5], [1.8, 0.5]]}\nmetric: {isotropic: 1}\n")
     h = math.sqrt(3) / 2
     pts = np.array([[0.0, 0.0], [h, -0.5], [2 * h, 0.0], [h, 0.5], [0.32, 0.0]])
@@ -150,12 +151,14 @@ def test_the_end_of_a_long_edge_is_removed_when_its_ring_has_a_unit_diagonal():
     lens = edge_lengths(fld, np.asarray(star.points), star.edges, star.edge_mid)
     assert lens.max() == pytest.approx(2 * h - 0.32) and lens.max() > 1.4
     assert quality(fld, star).min() >= 0.33
-    assert remove_vertices(fld, star, long_edges=False).removed == 0
-    res = remove_vertices(fld, star)
-    assert res.removed == 1
-    corners = np.asarray(res.mesh.points)[res.mesh.triangles[:, :3]]
-    assert {frozenset(map(tuple, np.round(c, 12))) for c in corners} == {
-        frozenset(map(tuple, np.round(pts[list(t)], 12))) for t in ((0, 1, 3), (1, 2, 3))
-    }
-    np.testing.assert_allclose(quality(fld, res.mesh), 1.0, atol=1e-9)
-    assert valid_exact(np.asarray(res.mesh.points)[res.mesh.triangles]).all()
+    assert remove_vertices(fld, star, long_edges=False, short_edges=False).removed == 0
+    # v's edge to the sharp corner, 0.32, is short: either edge alone removes it
+    for long_edges, short_edges in ((True, False), (False, True)):
+        res = remove_vertices(fld, star, long_edges=long_edges, short_edges=short_edges)
+        assert res.removed == 1
+        corners = np.asarray(res.mesh.points)[res.mesh.triangles[:, :3]]
+        assert {frozenset(map(tuple, np.round(c, 12))) for c in corners} == {
+            frozenset(map(tuple, np.round(pts[list(t)], 12))) for t in ((0, 1, 3), (1, 2, 3))
+        }
+        np.testing.assert_allclose(quality(fld, res.mesh), 1.0, atol=1e-9)
+        assert valid_exact(np.asarray(res.mesh.points)[res.mesh.triangles]).all()
