@@ -10,13 +10,14 @@ For every metric file, fifteen meshes, each stage added to the previous ones:
   (``--no-fit`` too, which only acts on ``interpolation`` metrics);
 * ``+ hexagons``: points sampled on a hexagonal lattice where the metric's
   frame turns slowly (:mod:`curvimesh.sampling`);
-* ``+ cores``: and the fronts grown first from the cores of thin curved layers
-  (anisotropy 100 or more; :mod:`curvimesh.cores`; nothing elsewhere);
+* ``+ cores``: and thin curved layers (anisotropy 100 or more) sampled first, row by
+  row from their cores, as in ``adapt``'s first run (:mod:`curvimesh.cores`,
+  :mod:`curvimesh.rows`, :func:`curvimesh.adapt.first_run`; nothing elsewhere);
 * ``+ fill``: and gap filling of the point cloud (:mod:`curvimesh.fill`);
 * ``+ relocate``: and vertex relocation (:mod:`curvimesh.smooth`);
-* ``+ charts``: and the edges of thin curved layers flipped to the Delaunay
-  triangulation of each layer's own coordinates (:mod:`curvimesh.charts`; nothing
-  where there is no core);
+* ``+ charts``: and each thin curved layer triangulated again in its own
+  coordinates, or its edges flipped towards that triangulation where it is not kept
+  (:mod:`curvimesh.charts`; nothing where there is no core);
 * ``+ intrinsic``: and intrinsic Delaunay flips where the metric's frame turns
   by 60° or more per unit length (:mod:`curvimesh.intrinsic`; nothing elsewhere);
 * ``+ insert``: and vertex insertion at long curved edges (:mod:`curvimesh.insert`);
@@ -114,6 +115,7 @@ def ablate(metric_path: str, seed: int = 0) -> dict:
     clouds, p2 = {}, {}
     for hexagons, cores, fill, relocate in first:
         opt = replace(base, hexagons=hexagons, cores=cores, fill=fill, relocate=relocate)
+        opt = pipeline.first_run(opt, fld)  # thin curved layers row by row, with the cores
         if (hexagons, cores, fill) not in clouds:
             t = time.perf_counter()
             clouds[hexagons, cores, fill] = (pipeline.sample(fld, opt), time.perf_counter() - t)
@@ -160,11 +162,12 @@ def section(results: list[dict], seed: int) -> str:
         "--no-shift --no-remove --no-repeat --no-bend`, *+ hexagons* samples the points on "
         "a hexagonal "
         "lattice where the metric's directions turn less than 10° per unit length, "
-        "*+ cores* grows the fronts first from the cores of thin curved layers (anisotropy "
-        "100 or more; none in these metrics but `thin_ring`), *+ fill* adds gap filling, "
-        "*+ relocate* vertex relocation, *+ charts* the edges of thin curved layers "
-        "flipped to the Delaunay triangulation of each layer's own coordinates (near a "
-        "core; none in these metrics but `thin_ring`), *+ intrinsic* "
+        "*+ cores* samples thin curved layers first, row by row from their cores "
+        "(anisotropy 100 or more; none in these metrics but `thin_ring`), *+ fill* adds "
+        "gap filling, *+ relocate* vertex relocation, *+ charts* each thin curved layer "
+        "triangulated again in its own coordinates, or its edges flipped towards that "
+        "triangulation where it is not kept (near a core; none in these metrics but "
+        "`thin_ring`), *+ intrinsic* "
         "intrinsic Delaunay flips where the metric's directions turn 60° or more per unit "
         "length, *+ insert* "
         "vertex insertion at long edges, *+ split* curvilinear edge splits, *+ recurve* "
@@ -172,15 +175,15 @@ def section(results: list[dict], seed: int) -> str:
         "the edges left longer than 1.4 towards a free middle node), *+ length swaps* swaps "
         "for edge lengths, *+ shift* vertices moved at the edges left long and at the "
         "triangles of quality below 0.8, *+ remove* vertices of the triangles still below "
-        "0.3 and of the edges still longer than 1.4 removed, *+ repeat* the swaps and "
-        "clean-up stages repeated while edges longer than 1.4 or triangles below quality "
-        "0.3 are left, *+ bend* the nodes of the edges of the triangles still below "
-        "quality 0.8 bent off their parabolas where that raises the worse of their two "
-        "triangles (the default `adapt`, the meshes above; its further runs, with the "
-        "hexagonal lattice kept out of thin curved layers and then without it, and these "
-        "with other sampling seeds, made where an edge longer than 1.5 is left, start on "
-        "none of them). Seconds are the whole "
-        "adaptation of each row.\n\n"
+        "0.3 and of the edges still shorter than 0.7 or longer than 1.4 removed, "
+        "*+ repeat* the swaps and clean-up stages repeated while edges longer than 1.4 or "
+        "triangles below quality 0.3 are left, *+ bend* the nodes of the edges of the "
+        "triangles still below quality 0.8 bent off their parabolas where that raises the "
+        "worse of their two triangles (the default `adapt`, the meshes above; its further "
+        "runs, with thin curved layers sampled by the fronts, with the hexagonal lattice "
+        "kept out of them and then without it, and these with other sampling seeds, made "
+        "where an edge longer than 1.5 is left, start on none of them). Seconds are the "
+        "whole adaptation of each row.\n\n"
         f"{table(results)}\n{END}\n"
     )
 
