@@ -623,7 +623,7 @@ def first_run(opt: AdaptOptions, fld: MetricField) -> AdaptOptions:
     triangulation of those points is not kept. Measured on the 25 fields of
     ``bench/robustness`` and ``metrics/`` with cores (seed 0, one run each): 14 give
     the same figures either way; the row-by-row run meets every target where the other
-    leaves edges of 1.44 (``u72``), 7.3 (``u56``: 1.69 row by row) and 15.7
+    leaves edges of 1.48 (``u72``), 7.3 (``u56``: 1.69 row by row) and 15.7
     (``u58``), and takes fewer triangles on six circular layers (``u45`` 1.106 →
     1.016 times the ideal count); on ``u74`` both runs leave long edges (8.7 row by
     row, 5.7 not), which the later runs mend."""

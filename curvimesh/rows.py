@@ -30,7 +30,7 @@ fronts grow on from there.
 again in its own coordinates (:func:`curvimesh.charts.rebuilt`), where its rows are
 lines. Measured without retries, sampled by the fronts → row by row: ``u56`` 97.6 %
 of the edges in [0.7, 1.4] and edges up to 7.29 → 99.94 % and 1.69; ``u72`` (800:1
-about an ellipse) 99.85 % and 1.44 → 100 % and 1.400; ``u58`` (2,000:1 about an
+about an ellipse) 99.83 % and 1.48 → 100 % and 1.400; ``u58`` (2,000:1 about an
 ellipse) 92.8 % and 15.7 → 100 % and 1.400. Before the layer was triangulated
 again, Lawson's flips from the metric Delaunay triangulation towards the layer's
 own (:func:`curvimesh.charts.flipped`) stopped on its folds, which staggered rows
