@@ -196,13 +196,15 @@ def walk(
     at: Callable[[NDArray, NDArray], NDArray],
     totals: NDArray,
     spacing: float,
+    max_step: float = np.inf,
 ) -> list[NDArray]:
     """Arc lengths of walks along several curves at once, each a list starting at 0:
     from the last point, the next is at the arc length where the shortest parabola
     (equation (3), :func:`curvimesh.geodesic.shortest_parabola`) from it is
     ``spacing`` long, interpolated between the first of the trial arc lengths (0.3 to
-    1.2 times ``spacing``) whose parabola is that long or longer and the one before;
-    a walk ends where no trial within its curve's length ``totals[r]`` is.
+    1.2 times ``spacing``) whose parabola is that long or longer and the one before,
+    and at most ``max_step`` of arc on; a walk ends where no trial within its curve's
+    length ``totals[r]`` is.
 
     ``at(r, s)`` gives the points ``(k, 2)`` of curves ``r`` ``(k,)`` at arc lengths
     ``s`` ``(k,)``."""
@@ -235,6 +237,7 @@ def walk(
         lo, hi = length[i[mid], km - 1], length[i[mid], km]
         t = (spacing - lo) / (hi - lo)
         new[mid] = cand[i[mid], km - 1] + t * (cand[i[mid], km] - cand[i[mid], km - 1])
+        new = np.minimum(new, s[active] + max_step)
         s[active] = new
         last[active] = at(active, new)
         for r, v in zip(active, new, strict=True):
@@ -257,9 +260,12 @@ def evened(walked: NDArray, total: float) -> NDArray:
     return w * (total / (w[-1] + mean))
 
 
-def place(field: MetricField, line: NDArray, closed: bool, spacing: float) -> NDArray:
+def place(
+    field: MetricField, line: NDArray, closed: bool, spacing: float, max_step: float = np.inf
+) -> NDArray:
     """Points ``(k, 2)`` along a traced core, the shortest parabola between successive
-    ones (:func:`curvimesh.geodesic.shortest_parabola`, equation (3)) ``spacing`` long.
+    ones (:func:`curvimesh.geodesic.shortest_parabola`, equation (3)) ``spacing`` long,
+    and at most ``max_step`` apart in metric length along the core.
 
     Across a thin curved layer a parabola cannot follow the core's curve as
     closely as the layer is thin: the shortest one between two points of the
@@ -283,7 +289,11 @@ def place(field: MetricField, line: NDArray, closed: bool, spacing: float) -> ND
     arc = arc_lengths(field, line)
     total = arc[-1]
     (walked,) = walk(
-        field, lambda _, s: points_on_core(field, line, arc, s), np.array([total]), spacing
+        field,
+        lambda _, s: points_on_core(field, line, arc, s),
+        np.array([total]),
+        spacing,
+        max_step,
     )
     if closed or at_box[1]:
         walked = evened(walked, total)

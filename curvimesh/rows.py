@@ -63,6 +63,16 @@ from curvimesh.metric import MetricField
 
 #: Most rows on each side of a core.
 MAX_ROWS = 400
+#: Most metric length along the core between two of its points, times the step. The
+#: parabola spacing lays them 0.54 apart where a sine layer turns (the parabola cannot
+#: follow the inflection) but 0.84 at its crests (it follows them), where the triangles
+#: one row thick on that base are invalid as images of the chart's
+#: (:func:`curvimesh.charts.rebuilt`): they were flipped into an edge across the core,
+#: 2.0 long, and the first run of bench/robustness u56 kept 1.69. At 0.75: 1.402, and
+#: u53 1.495 → 1.411; at 0.8, 1.71. Measured on the 25 fields with cores (first run,
+#: seed 0): every other field within the targets as before, the worst efficiency 1.126
+#: (u07, unchanged), four 0.04 – 0.07 more (u24, u57, u60, u71), six less.
+CORE_MAX_STEP = 0.75
 #: Step of the fine polyline of the core the rows are shot from, times ``spacing``.
 #: The walk measures parabolas between points on the chords of the fine rows, which
 #: stray from the row by their sag: at 0.05 up to half a short size of a 5,000:1
@@ -278,7 +288,7 @@ def _core_rows(
     poly, at_box = core_polyline(field, line, closed)
     to_ends = at_box[0] and at_box[1]
     core = fine_core(field, poly, closed, spacing)
-    laid = place(field, line, closed, spacing)
+    laid = place(field, line, closed, spacing, CORE_MAX_STEP * step)
     fine: dict[float, list[NDArray]] = {1.0: [], -1.0: []}
     ways = {1.0: core.v, -1.0: -core.v}
     counts = {1.0: len(laid), -1.0: len(laid)}
