@@ -13,10 +13,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_cores import ring
 
-from curvimesh import rows, sampling
+from curvimesh import charts, rows, sampling
 from curvimesh.adapt import AdaptOptions, adapt, first_run, retries
 from curvimesh.boundary import discretize_box
 from curvimesh.cli import main
+from curvimesh.cores import layer_cores, place
 from curvimesh.geodesic import shortest_parabola
 from curvimesh.io import read_mesh
 from curvimesh.metric import load_metric_text
@@ -139,17 +140,35 @@ def test_adapt_samples_row_by_row_first_only_where_there_are_thin_curved_layers(
     assert not any(o.sampling.rows for _, o in retries(AdaptOptions(), constant))
 
 
-def test_a_sine_layer_sampled_row_by_row_is_within_the_unit_range():
+def test_a_sine_layer_sampled_row_by_row_meets_issue_7_s_targets_in_the_first_run():
     # from the box's sides and the core alone this layer kept edges of 5 - 10 at every
     # seed: its core points are 0.5 - 0.7 apart along it, and two rows out the frontal
     # columns end every other one
     fld = load_metric_text(SINE)
-    opt = AdaptOptions(retry=False, sampling=sampling.SamplingOptions(rows=True))
-    rep = mesh_report(fld, adapt(fld, opt).mesh)
+    res = adapt(fld, AdaptOptions(retry=False))
+    rep = mesh_report(fld, res.mesh, metric_area=res.metric_area)
     assert rep["valid"]
     assert rep["edge_length"]["min"] >= 0.7 * (1 - 1e-5)
-    assert rep["edge_length"]["in_range"] >= 0.995
-    assert rep["edge_length"]["max"] < 1.8
+    assert rep["edge_length"]["in_range"] >= 0.98
+    assert rep["edge_length"]["max"] <= 1.5
+    assert rep["quality"]["min"] >= 0.3 and rep["quality"]["mean"] >= 0.8
+    assert rep["efficiency"] <= 1.15
+
+
+def test_the_core_s_points_are_at_most_the_cap_apart_along_it():
+    """The sine layer's core points, in the chart's metric length along the core (the
+    long size's, at most the walk's own measure): no gap over rows.CORE_MAX_STEP,
+    where the parabola spacing alone leaves 0.84 at the crests."""
+    fld = load_metric_text(SINE)
+    ((laid, _),) = rows.layer_rows(fld, sampling.CORE_SPACING)
+    (line, closed), *_ = layer_cores(fld)
+    chart = charts.chart_of(fld, line, closed)
+    s, _, _ = charts.to_chart(fld, chart, laid)
+    gaps = np.diff(np.sort(s))
+    assert gaps.max() <= rows.CORE_MAX_STEP * (1 + 1e-3)
+    free = place(fld, line, closed, sampling.CORE_SPACING)
+    s_free, _, _ = charts.to_chart(fld, chart, free)
+    assert np.diff(np.sort(s_free)).max() > 0.8
 
 
 def test_sample_on_the_command_line_writes_the_rows_unless_no_rows(tmp_path):
