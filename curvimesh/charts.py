@@ -524,7 +524,10 @@ REBUILD_MIN_SAG = 1.0
 def _boundary_edges(tris: NDArray) -> NDArray:
     """The boundary of the triangles ``tris`` ``(m, 3)`` (counter-clockwise): their edges
     a → b ``(k, 2)`` held by no other of them, as they run in their triangle (the
-    triangles on their left)."""
+    triangles on their left). :attr:`curvimesh.mesh.Mesh.boundary_lines` lists the
+    same edges in another order, which is the order the polygon's edges are inserted
+    in (:func:`chart_triangulation`): with points of exactly cocircular rows, another
+    triangulation (u57: same figures, other bytes)."""
     de = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
     big = int(tris.max()) + 1
     return de[~np.isin(de[:, 1] * big + de[:, 0], de[:, 0] * big + de[:, 1])]
@@ -694,12 +697,9 @@ LONG_EDGE = 1.4
 
 
 def _long_edges(field: MetricField, mesh: Mesh, tris: NDArray) -> int:
-    """How many edges of the triangles ``tris`` ``(m, 3)`` (corners of the P2 ``mesh``,
-    numbered as in :func:`curvimesh.mesh.p1_of`) are longer than :data:`LONG_EDGE`."""
-    ends = np.sort(p1_edges(mesh), axis=1)
-    n = len(mesh.vertex_ids)
-    e = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
-    at = np.flatnonzero(np.isin(ends[:, 0] * n + ends[:, 1], e[:, 0] * n + e[:, 1]))
+    """How many edges of the triangles ``tris`` ``(k,)`` of the P2 ``mesh`` are longer than
+    :data:`LONG_EDGE`."""
+    at = np.unique(mesh.tri_edges[tris])
     pts = mesh.points
     x0, x1, xm = pts[mesh.edges[at, 0]], pts[mesh.edges[at, 1]], pts[mesh.edge_mid[at]]
     return int((edge_lengths_fast(field, x0, x1, xm, remember=False) > LONG_EDGE).sum())
@@ -767,8 +767,9 @@ def _rebuilt_layer(field: MetricField, layers: Layers, mesh: Mesh, k: int) -> tu
         if bad.size:
             cur, mids, bad = _repaired(field, ext, pts, cur, mids, fresh, bad)
         if bad.size == 0:
-            out = assemble_p2(pts, cur, mids)
-            if _long_edges(field, out, new) < _long_edges(field, mesh, corners[region]):
+            out = assemble_p2(pts, cur, mids)  # the new triangles last, as in cur
+            made = np.arange(len(cur.corners) - len(new), len(cur.corners))
+            if _long_edges(field, out, made) < _long_edges(field, mesh, np.flatnonzero(region)):
                 return out, len(new), tries
             break
         inner[_near(np.asarray(cur.corners), np.asarray(cur.corners)[bad].ravel())] = False
