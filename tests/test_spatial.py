@@ -7,7 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from curvimesh.spatial import CAPACITY, PackedTree, PointIndex, pairs_within_boxes
+from curvimesh import kernels
+from curvimesh.spatial import CAPACITY, PackedTree, PointIndex, packed_arrays, pairs_within_boxes
 
 
 def brute_query(pts, mins, maxs):
@@ -38,6 +39,26 @@ def test_batches_of_a_graded_cloud_answer_as_brute_force():
     bq, bi = brute_query(pts, centre - half, centre + half)
     assert len(q) > 10_000
     assert np.array_equal(q, bq) and np.array_equal(ids, bi)
+
+
+def test_a_walk_whose_stack_fills_says_so_and_a_larger_one_finds_every_point():
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(0, 1, (5000, 2))
+    args = packed_arrays([PackedTree(np.arange(len(pts)), pts)])
+    lo, hi = np.array([0.2, 0.3]), np.array([0.6, 0.5])
+    want = np.sort(brute_query(pts, lo[None], hi[None])[1])
+    out = np.empty(len(pts), dtype=np.int64)
+    # 5,000 points: 313 leaves of 16, under 20 nodes, under 2, under the root; a node of
+    # 16 leaves that meets the box pushes more than two of them, and a stack of two overflows
+    small = np.empty(2, dtype=np.int64)
+    assert kernels._rtree_walk(*args, *lo, *hi, out, len(out), small) == -1
+    found = kernels._rtree_walk(*args, *lo, *hi, out, len(out), np.empty(64, dtype=np.int64))
+    assert found == len(want) > 300  # 0.4 × 0.2 × 5,000 expected
+    assert np.array_equal(np.sort(out[:found]), want)
+    # the entry point regrows its stack as needed and gives the same ids in the same order
+    again = np.empty(len(pts), dtype=np.int64)
+    assert kernels._rtree_visit(*args, *lo, *hi, again, len(again)) == found
+    assert np.array_equal(again[:found], out[:found])
 
 
 def test_boxes_are_closed_and_duplicates_all_found():
