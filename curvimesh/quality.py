@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from curvimesh import kernels
 from curvimesh.bezier import p2_jacobian, p2_map, p2_shape, p2_shape_grad
 from curvimesh.geodesic import parabola_length, parabola_length_rule
-from curvimesh.memo import memo_table, memoised
+from curvimesh.memo import RowMemo, memo_table, memoised
 from curvimesh.mesh import Mesh
 from curvimesh.metric import MetricField
 
@@ -36,38 +36,69 @@ REPORT_RTOL = 1e-5
 #: and splitting work on.
 COUNT_RTOL = 1e-4
 
-#: A metric whose compiled evaluation takes at least this many nanoseconds a point has
-#: its areas and edge lengths remembered (:func:`remembers`); below, looking a measure
-#: up costs about what computing it does. As :func:`remembers` times them: the toy,
-#: about 29 ns a point (swap stage at 10⁵ vertices 3.47 s without the tables, 3.74 s
-#: with); the three toys, about 70 ns (1.16 s and 0.82 s at 10⁴). The threshold is
-#: their geometric mean, 1.5 times from either.
-MEMO_MIN_NS = 45.0
+#: A metric whose compiled evaluation of a point takes at least this many times a look-up
+#: of one row in a memo table (:func:`memo_lookup_ns`), both timed on the machine that
+#: runs, has its areas and edge lengths remembered (:func:`remembers`); below, looking
+#: a measure up costs about what computing it does. A measure takes 10 (a length) to
+#: 16 (an area) evaluations; a row looked up, computed and added costs several look-ups.
+#: Measured on a 2-core machine where a look-up took 29 – 48 ns (in process, each case
+#: with the tables and without, medians):
+#:
+#: - the toy, 25 ns a point (ratio 0.5 – 0.85): the same time either way, 9.46 s and
+#:   9.51 s at 91,028 vertices (the swap stage 2.23 s and 2.57 s, the curving 0.67 s and
+#:   0.59 s);
+#: - the three toys, 40 – 65 ns (ratio 0.85 – 2.2): 2.36 s and 2.58 s at 9,644 vertices,
+#:   6.46 s and 7.14 s at 38,050.
+#:
+#: The threshold lies between, where the choice costs nothing. An absolute one (45 ns,
+#: set on a machine where the toy took 29 ns and the three toys 70) had the three toys
+#: at 38,050 vertices, 44 ns on this one, go without the tables.
+MEMO_MIN_RATIO = 0.6
 
 _REMEMBERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
+def _best_ns(run, n: int, repeat: int = 3) -> float:
+    """The best of ``repeat`` timings of ``run()``, in nanoseconds per each of its ``n``."""
+    best = math.inf
+    for _ in range(repeat):
+        t = time.perf_counter()
+        run()
+        best = min(best, time.perf_counter() - t)
+    return best / n * 1e9
+
+
+@lru_cache(maxsize=1)
+def memo_lookup_ns() -> float:
+    """Nanoseconds a row of six floats takes to be found in a memo table
+    (:class:`curvimesh.memo.RowMemo`, 4,096 rows, best of three), timed once a process."""
+    rows = np.random.default_rng(0).uniform(size=(4096, 6))
+    table = RowMemo(6)
+    table.add(rows, rows[:, 0])
+    table.find(rows[:16])
+    return _best_ns(lambda: table.find(rows), len(rows))
+
+
+def metric_ns(field: MetricField) -> float:
+    """Nanoseconds the compiled evaluation of ``field`` takes a point (4,096 points of its
+    box, best of three)."""
+    xmin, ymin, xmax, ymax = field.box
+    u = (np.arange(64) + 0.5) / 64
+    pts = np.column_stack(
+        [np.repeat(xmin + u * (xmax - xmin), 64), np.tile(ymin + u * (ymax - ymin), 64)]
+    )
+    field.evaluate(pts[:16], derivatives=False, check=False)
+    return _best_ns(lambda: field.evaluate(pts, derivatives=False, check=False), len(pts))
+
+
 def remembers(field: MetricField) -> bool:
     """Whether the measures of ``field`` are kept in memo tables (:mod:`curvimesh.memo`):
-    where its evaluation is not compiled, or takes at least :data:`MEMO_MIN_NS` a point
-    (timed once per field, best of three on 4,096 points of its box). The tables only
-    spare work: the numbers are the same either way."""
+    where its evaluation is not compiled, or takes at least :data:`MEMO_MIN_RATIO` times
+    a look-up (:func:`metric_ns`, :func:`memo_lookup_ns`; decided once per field). The
+    tables only spare work: the numbers are the same either way."""
     known = _REMEMBERS.get(field)
     if known is None:
-        known = True
-        if field.kernel is not None:
-            xmin, ymin, xmax, ymax = field.box
-            u = (np.arange(64) + 0.5) / 64
-            pts = np.column_stack(
-                [np.repeat(xmin + u * (xmax - xmin), 64), np.tile(ymin + u * (ymax - ymin), 64)]
-            )
-            field.evaluate(pts[:16], derivatives=False, check=False)
-            best = math.inf
-            for _ in range(3):
-                t = time.perf_counter()
-                field.evaluate(pts, derivatives=False, check=False)
-                best = min(best, time.perf_counter() - t)
-            known = best / len(pts) * 1e9 >= MEMO_MIN_NS
+        known = field.kernel is None or metric_ns(field) >= MEMO_MIN_RATIO * memo_lookup_ns()
         _REMEMBERS[field] = known
     return known
 

@@ -79,7 +79,7 @@ def test_memoised_computes_only_the_rows_it_has_not_seen():
 def test_remembered_areas_and_lengths_are_the_computed_ones(monkeypatch):
     import curvimesh.quality as quality
 
-    monkeypatch.setattr(quality, "MEMO_MIN_NS", 0.0)  # remember, however cheap the metric
+    monkeypatch.setattr(quality, "MEMO_MIN_RATIO", 0.0)  # remember, however cheap the metric
     text = """
 domain: {box: [[-1, -1], [1, 1]]}
 metric:
@@ -119,7 +119,7 @@ def test_adapt_gives_the_same_mesh_without_the_tables(monkeypatch):
     from curvimesh.metric import load_metric
 
     path = Path(__file__).resolve().parents[1] / "metrics" / "toy.yaml"
-    monkeypatch.setattr(quality, "MEMO_MIN_NS", 0.0)  # the toy is cheap: remember anyway
+    monkeypatch.setattr(quality, "MEMO_MIN_RATIO", 0.0)  # remember, whatever the machine
     fld = load_metric(path)
     assert quality.remembers(fld)
     with_tables = adapt(fld).mesh
@@ -135,11 +135,20 @@ def test_only_metrics_slow_to_evaluate_are_remembered(monkeypatch):
     import curvimesh.quality as quality
 
     text = "domain: {box: [[0, 0], [1, 1]]}\nmetric: {eigen: {sizes: [0.1, 0.2], angle: x}}\n"
-    monkeypatch.setattr(quality, "MEMO_MIN_NS", float("inf"))
+    monkeypatch.setattr(quality, "MEMO_MIN_RATIO", float("inf"))
     fld = load_metric_text(text)
     assert not quality.remembers(fld)
     assert quality.remembers(dataclasses.replace(fld, jit=False))  # numpy: microseconds
-    monkeypatch.setattr(quality, "MEMO_MIN_NS", 0.0)
+    monkeypatch.setattr(quality, "MEMO_MIN_RATIO", 0.0)
     assert not quality.remembers(fld)  # decided once per field (equal fields share it)
     assert not quality.remembers(load_metric_text(text))
     assert quality.remembers(load_metric_text(text.replace("0.2", "0.3")))
+
+
+def test_the_look_up_is_timed_once_and_the_metric_per_field():
+    import curvimesh.quality as quality
+
+    first = quality.memo_lookup_ns()
+    assert 0.0 < first < 1e5 and quality.memo_lookup_ns() == first  # once a process
+    text = "domain: {box: [[0, 0], [1, 1]]}\nmetric: {eigen: {sizes: [0.1, 0.2], angle: x}}\n"
+    assert 0.0 < quality.metric_ns(load_metric_text(text)) < 1e5
