@@ -57,10 +57,10 @@ there, one row thick, fold from a base of 0.8 long sizes.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.interpolate import CubicSpline
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from curvimesh.bezier import valid_exact
@@ -80,6 +80,9 @@ from curvimesh.mesh import (
 from curvimesh.metric import MetricField, eigen_frame, layer_sag
 from curvimesh.quality import edge_lengths_fast
 from curvimesh.triangulate import delaunay_flips, in_circle, insert_segments, orient
+
+if TYPE_CHECKING:
+    from scipy.interpolate import CubicSpline
 
 #: Gauss–Legendre rule of the chart's metric lengths across the layer: 5 nodes on each
 #: piece of the segment between its fractions 0, 2⁻¹⁰, 2⁻⁹, …, 1/2, 1. The size is least
@@ -153,6 +156,10 @@ def chart_of(field: MetricField, line: NDArray, closed: bool) -> Chart:
         keep[-2] = keep[-2] and step[-1] > 1e-12 * step.sum()
     pts = pts[keep]
     u = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    # here: scipy.interpolate adds 0.08 s to every command's start, and only metrics with
+    # thin curved layers come here
+    from scipy.interpolate import CubicSpline
+
     curve = CubicSpline(u, pts, bc_type="periodic" if closed else "not-a-knot")
     table = np.linspace(0.0, u[-1], TABLE_STEPS * (len(u) - 1) + 1)
     m, r, _, _ = eigen_frame(field.tensor(curve(table), check=False))
