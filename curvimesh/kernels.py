@@ -1041,7 +1041,8 @@ def _probe_sup(fn, ax, ay, dx, dy, nx, ny, tk, sk):
     """νᵀ g⁻¹ ν at the probe a + t d + s d×e₃ (ν = d / |d| = (nx, ny)), the squared
     size along ν there; NaN where g is undefined."""
     g = fn(ax + tk * dx + sk * dy, ay + tk * dy - sk * dx)
-    return _sup_of(g[0], g[1], g[2], nx, ny)
+    det = g[0] * g[2] - g[1] ** 2
+    return (g[2] * nx**2 - 2 * g[1] * nx * ny + g[0] * ny**2) / det
 
 
 @njit(**_JIT)
@@ -1072,20 +1073,10 @@ def chord_bounds(fn, a, b, probes, out):
 
 
 @njit(**_JIT)
-def _sup_of(g11, g12, g22, nx, ny):
-    """νᵀ g⁻¹ ν of g = (g11, g12, g22) and ν = (nx, ny), as :func:`_probe_sup` takes it."""
-    det = g11 * g22 - g12**2
-    return (g22 * nx**2 - 2 * g12 * nx * ny + g11 * ny**2) / det
-
-
-@njit(**_JIT)
-def _chord_bound_reaches(fn, ax, ay, bx, by, probes, target, ga=None):
+def _chord_bound_reaches(fn, ax, ay, bx, by, probes, target):
     """Whether :func:`_chord_bound` is at least ``target`` > 0 (False where it is NaN):
     |d| / sqrt(worst) ≥ target ⇔ worst ≤ (|d| / target)², so the probes stop at the
-    first one above that (most pairs that are not far: the first probe).
-
-    ``ga``, the metric (g11, g12, g22) at a when the caller has it, stands for the
-    probe (0, 0), a itself (the same values: a + 0 d + 0 d×e₃ is a)."""
+    first one above that (most pairs that are not far: the first probe)."""
     dx = bx - ax
     dy = by - ay
     chord = math.hypot(dx, dy)
@@ -1093,10 +1084,7 @@ def _chord_bound_reaches(fn, ax, ay, bx, by, probes, target, ga=None):
     ny = dy / chord
     limit = (chord / target) ** 2
     for k in range(probes.shape[0]):
-        if ga is not None and probes[k, 0] == 0.0 and probes[k, 1] == 0.0:
-            sup = _sup_of(ga[0], ga[1], ga[2], nx, ny)
-        else:
-            sup = _probe_sup(fn, ax, ay, dx, dy, nx, ny, probes[k, 0], probes[k, 1])
+        sup = _probe_sup(fn, ax, ay, dx, dy, nx, ny, probes[k, 0], probes[k, 1])
         if not sup <= limit:  # above, or NaN
             return False
     return True
@@ -1116,13 +1104,12 @@ def _relative_floor(m11, m21, m22, g11, g12, g22):
 
 
 @njit(**_JIT)
-def _lens_bound(fn, ax, ay, bx, by, probes, target, ga=None):
+def _lens_bound(fn, ax, ay, bx, by, probes, target):
     """:func:`curvimesh.geodesic.lens_lower_bound` of one pair, sqrt(λ dᵀ g₀ d) with g₀
     the metric at the chord's middle and λ the least over the probes of g's smallest
     eigenvalue relative to g₀ (:func:`_relative_floor`); NaN where g is undefined at a
     probe. With ``target`` > 0 the probes stop at the first one that puts the bound
-    below it (the value returned is then below ``target``, not the bound). ``ga``: as
-    :func:`_chord_bound_reaches` takes it."""
+    below it (the value returned is then below ``target``, not the bound)."""
     dx = bx - ax
     dy = by - ay
     g0 = fn(0.5 * (ax + bx), 0.5 * (ay + by))
@@ -1140,11 +1127,8 @@ def _lens_bound(fn, ax, ay, bx, by, probes, target, ga=None):
     lam = math.inf
     for k in range(probes.shape[0]):
         tk, sk = probes[k, 0], probes[k, 1]
-        if ga is not None and tk == 0.0 and sk == 0.0:
-            r = _relative_floor(m11, m21, m22, ga[0], ga[1], ga[2])
-        else:
-            g = fn(ax + tk * dx + sk * dy, ay + tk * dy - sk * dx)
-            r = _relative_floor(m11, m21, m22, g[0], g[1], g[2])
+        g = fn(ax + tk * dx + sk * dy, ay + tk * dy - sk * dx)
+        r = _relative_floor(m11, m21, m22, g[0], g[1], g[2])
         if math.isnan(r):
             return math.nan
         lam = min(lam, r)
@@ -1161,26 +1145,22 @@ def lens_bounds(fn, a, b, probes, out):
 
 
 @njit(**_JIT)
-def _is_close(
-    fn, ax, ay, bx, by, short, margin, probes, ts, ws, grid, t, w, tol, straight_first, ga=None
-):
+def _is_close(fn, ax, ay, bx, by, short, margin, probes, ts, ws, grid, t, w, tol, straight_first):
     """Whether the shortest parabola from a to b is below ``short``, decided as
     :func:`curvimesh.geodesic.parabola_verdicts` with only ``short``: far if the
     chord bound is at least ``margin`` × short (:func:`_chord_bound_reaches`), close
     if the straight segment (rule ``ts``, ``ws``) is below it, far if the lens bound
     (:func:`_lens_bound`) is at least ``margin`` × short, else by the search
     stopping at its verdict. With ``straight_first`` the segment is measured before
-    the bound (for pairs likely close: the bound is then not needed). ``ga``, the
-    metric at a when the caller has it, spares the bounds' probe at a."""
-    reach = margin * short
-    if not straight_first and _chord_bound_reaches(fn, ax, ay, bx, by, probes, reach, ga):
+    the bound (for pairs likely close: the bound is then not needed)."""
+    if not straight_first and _chord_bound_reaches(fn, ax, ay, bx, by, probes, margin * short):
         return False
     upper = _parabola_length(fn, ax, ay, bx, by, 0.5 * (ax + bx), 0.5 * (ay + by), ts, ws)
     if upper < short:  # (an undefined length is inf, never NaN)
         return True
-    if straight_first and _chord_bound_reaches(fn, ax, ay, bx, by, probes, reach, ga):
+    if straight_first and _chord_bound_reaches(fn, ax, ay, bx, by, probes, margin * short):
         return False
-    if _lens_bound(fn, ax, ay, bx, by, probes, reach, ga) >= reach:
+    if _lens_bound(fn, ax, ay, bx, by, probes, margin * short) >= margin * short:
         return False
     return _search(fn, ax, ay, bx, by, grid, t, w, tol, 60, True, short, math.inf)[2] < 0
 
@@ -1204,7 +1184,7 @@ def _nearest_close(
         p = nbr[k]
         if _is_close(
             fn, cx, cy, pts[p, 0], pts[p, 1], short, margin, probes, ts, ws, grid, t, w, tol,
-            key[k] < short * short, (g11, g12, g22),
+            key[k] < short * short,
         ):  # fmt: skip
             return True
     return False
