@@ -260,12 +260,15 @@ def from_chart(field: MetricField, chart: Chart, s: NDArray, n: NDArray) -> NDAr
 @dataclass(frozen=True)
 class Layers:
     """The points of a mesh in the layers: the chart of each (``charts``), and per
-    vertex the chart it lies in (−1: none) and its coordinates s, n there."""
+    vertex the chart it lies in (−1: none), its coordinates s, n there and, where
+    :func:`layer_points` measured it, how far a unit chord along the layer strays
+    there (``sag``, in short sizes; 0 elsewhere)."""
 
     charts: list[Chart]
     which: NDArray
     s: NDArray
     n: NDArray
+    sag: NDArray | None = None
 
 
 def layer_points(
@@ -277,15 +280,16 @@ def layer_points(
     at an open core's end)."""
     pts = np.asarray(pts, dtype=float)
     which = np.full(len(pts), -1, dtype=np.int64)
-    s, n = np.zeros(len(pts)), np.zeros(len(pts))
+    s, n, sag = np.zeros(len(pts)), np.zeros(len(pts)), np.zeros(len(pts))
     if not charts or len(pts) == 0:
-        return Layers(charts, which, s, n)
+        return Layers(charts, which, s, n, sag)
     g, dg = field.evaluate(pts, derivatives=True)
     m, r, _, _ = eigen_frame(g)
     h_max = 1.0 / np.sqrt(np.maximum(m - r, 1e-300))
-    cand = np.flatnonzero(layer_sag(g, dg) >= min_sag)
+    sag = layer_sag(g, dg)
+    cand = np.flatnonzero(sag >= min_sag)
     if cand.size == 0:
-        return Layers(charts, which, s, n)
+        return Layers(charts, which, s, n, sag)
     feet = [_feet(c, pts[cand]) for c in charts]  # (u, inside, distance) on each
     dist = np.stack([f[2] for f in feet])
     nearest = np.argmin(dist, axis=0)
@@ -297,7 +301,21 @@ def layer_points(
         idx = cand[on]
         s[idx], n[idx] = _coordinates(field, chart, pts[idx], u[on])
         which[idx[inside[on]]] = k
-    return Layers(charts, which, s, n)
+    return Layers(charts, which, s, n, sag)
+
+
+def thinned(layers: Layers, min_sag: float) -> Layers:
+    """``layers`` (from :func:`layer_points` with a ``min_sag`` at most this one) as
+    :func:`layer_points` gives them with ``min_sag``: each point's figures are its own,
+    so those of the points straying less are dropped."""
+    keep = layers.sag >= min_sag
+    return Layers(
+        layers.charts,
+        np.where(keep, layers.which, -1),
+        np.where(keep, layers.s, 0.0),
+        np.where(keep, layers.n, 0.0),
+        layers.sag,
+    )
 
 
 def _quad_coordinates(layers: Layers, quads: NDArray) -> NDArray:
@@ -467,10 +485,11 @@ def chart_flips(field: MetricField, mesh: Mesh) -> ChartResult:
     if mesh.order != 2 or not cores or len(mesh.triangles) == 0:
         return ChartResult(mesh, 0, 0, 0)
     pts = np.asarray(p1_of(mesh).points)
-    layers = layer_points(field, pts, [chart_of(field, line, closed) for line, closed in cores])
+    charts = [chart_of(field, line, closed) for line, closed in cores]
+    wide = layer_points(field, pts, charts, REBUILD_MIN_SAG)  # the rebuild's points
+    layers = thinned(wide, CORE_MIN_SAG)  # the flips' and the nodes'
     if (layers.which >= 0).sum() < 4:
         return ChartResult(mesh, 0, 0, 0)
-    wide = layer_points(field, pts, layers.charts, REBUILD_MIN_SAG)
     out, made = rebuilt(field, wide, mesh)
     out, edges, tries = flipped(field, layers, out)
     out, moved = renode(field, layers, out)
@@ -758,7 +777,9 @@ def _rebuilt_layer(field: MetricField, layers: Layers, mesh: Mesh, k: int) -> tu
         cur = Mesh(pts, np.vstack([corners[~region], new]), p1.box)
         if not is_conforming(cur) or len(cur.boundary_edges) != len(p1.boundary_edges):
             break
-        ext = Layers(layers.charts, layers.which.copy(), layers.s.copy(), layers.n.copy())
+        ext = Layers(
+            layers.charts, layers.which.copy(), layers.s.copy(), layers.n.copy(), layers.sag
+        )
         ext.which[ring], ext.s[ring], ext.n[ring] = k, rs, rn
         pos, known = store.find(store.key(cur.edges[:, 0], cur.edges[:, 1]))
         mids = np.where(known[:, None], store.mid[pos], 0.0)
@@ -825,5 +846,6 @@ __all__ = [
     "rebuilt",
     "renode",
     "segment_lengths",
+    "thinned",
     "to_chart",
 ]

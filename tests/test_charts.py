@@ -323,6 +323,21 @@ def test_a_ring_sampled_row_by_row_is_triangulated_again_in_its_chart(ring):
     np.testing.assert_array_equal(out.points[out.vertex_ids], mesh.points[mesh.vertex_ids])
 
 
+def test_layers_thinned_to_a_larger_sag_are_those_measured_with_it(ring):
+    """The chart stage measures the layer's points once, at the rebuild's sag, and thins
+    them to the flips' (:func:`charts.thinned`): the same points, charts and
+    coordinates as measuring at the flips' sag directly."""
+    fld, chart = ring
+    opt = AdaptOptions(sampling=replace(AdaptOptions().sampling, rows=True))
+    pts = np.asarray(sample(fld, opt).points)
+    wide = charts.layer_points(fld, pts, [chart], charts.REBUILD_MIN_SAG)
+    direct = charts.layer_points(fld, pts, [chart])
+    thin = charts.thinned(wide, charts.CORE_MIN_SAG)
+    assert (wide.which >= 0).sum() > (direct.which >= 0).sum() > 100
+    for a, b in ((thin.which, direct.which), (thin.s, direct.s), (thin.n, direct.n)):
+        np.testing.assert_array_equal(a, b)
+
+
 #: 1,000:1 about the ellipse of semi-axes 0.32 and 0.22 (radius of curvature 0.15 at
 #: its ends, where the layer reaches 0.08 inside): written to test the triangulation
 #: in the chart, not in bench/robustness.
