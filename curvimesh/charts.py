@@ -63,6 +63,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
+from curvimesh import kernels
 from curvimesh.bezier import valid_exact
 from curvimesh.cores import CORE_MIN_SAG, arc_lengths, layer_cores, points_on_core
 from curvimesh.curve import assemble_p2, boundary_edge_mask
@@ -562,20 +563,17 @@ def _boundary_edges(tris: NDArray) -> NDArray:
 def _fill(tris: NDArray, seed: NDArray, wall: NDArray, window: NDArray) -> NDArray:
     """``(m,)`` the triangles of ``tris`` ``(m, 3)`` reached from the ``seed`` ones through
     edges that are not ``wall`` edges ``(k, 2)`` (either way round), only ever into
-    triangles of the ``window`` ``(m,)``."""
-    mesh = Mesh(np.zeros((int(tris.max()) + 1, 2)), tris)
-    big = len(mesh.points)
-    e = np.sort(mesh.edges, axis=1)
+    triangles of the ``window`` ``(m,)`` (:func:`curvimesh.kernels.flood_fill`, the
+    sides into triangles outside the window walled too)."""
+    nbr = np.ascontiguousarray(Mesh(np.zeros((int(tris.max()) + 1, 2)), tris).neighbours)
+    big = int(tris.max()) + 1
+    a, b = tris, np.roll(tris, -1, axis=1)  # side k: corners k → k + 1, as nbr's
     w = np.sort(wall, axis=1)
-    open_ = ~np.isin(e[:, 0] * big + e[:, 1], w[:, 0] * big + w[:, 1]) & (mesh.edge_tris[:, 1] >= 0)
-    t1, t2 = mesh.edge_tris[open_, 0], mesh.edge_tris[open_, 1]
-    inside = seed & window
-    while True:
-        grow = np.concatenate([t2[inside[t1] & ~inside[t2]], t1[inside[t2] & ~inside[t1]]])
-        grow = grow[window[grow]]
-        if grow.size == 0:
-            return inside
-        inside[grow] = True
+    walled = np.isin(np.minimum(a, b) * big + np.maximum(a, b), w[:, 0] * big + w[:, 1])
+    walled |= (nbr >= 0) & ~window[np.maximum(nbr, 0)]
+    inside = np.zeros(len(tris), dtype=np.bool_)
+    kernels.flood_fill(nbr, walled, np.flatnonzero(seed & window), inside)
+    return inside
 
 
 def chart_triangulation(
