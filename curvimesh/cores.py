@@ -204,7 +204,11 @@ def walk(
     ``spacing`` long, interpolated between the first of the trial arc lengths (0.3 to
     1.2 times ``spacing``) whose parabola is that long or longer and the one before,
     and at most ``max_step`` of arc on; a walk ends where no trial within its curve's
-    length ``totals[r]`` is.
+    length ``totals[r]`` is. The searches start from the geodesic's bend at the
+    chord's middle (``guided``): from the scan alone, a trial of a row 4 rows inside a
+    5,700:1 ring (radius 0.219) measured 12.39 where its parabola is 0.80 long (the
+    valley in the offset narrower than the scan's step), and the walk stopped there,
+    a step 12 % short.
 
     ``at(r, s)`` gives the points ``(k, 2)`` of curves ``r`` ``(k,)`` at arc lengths
     ``s`` ``(k,)``."""
@@ -221,7 +225,7 @@ def walk(
         if len(rr):
             ends = at(active[rr], cand[rr, jj])
             length[rr, jj] = shortest_parabola(
-                field, last[active[rr]], ends, exact_length=False, remember=False
+                field, last[active[rr]], ends, exact_length=False, remember=False, guided=True
             ).length
         with np.errstate(invalid="ignore"):
             hit = ok & (length >= spacing)

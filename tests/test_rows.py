@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from test_cores import ring
 
@@ -197,6 +197,9 @@ def test_sample_on_the_command_line_writes_the_rows_unless_no_rows(tmp_path):
     cx=st.floats(0.47, 0.53),
     cy=st.floats(0.47, 0.53),
 )
+# found by hypothesis: a search from the scan alone measured one trial 12.39 (0.80) and
+# the walk of row 4 inside took a step 12 % short (see curvimesh.cores.walk)
+@example(radius=0.21875, h0=1.7467795473455387e-05, growth=0.3125, cx=0.5, cy=0.5)
 def test_any_thin_ring_s_rows_lie_at_their_distance_evenly_round(radius, h0, growth, cx, cy):
     # the radial size h0 + growth |r - R| integrates to ln(1 + growth |r - R| / h0) / growth
     fld = load_metric_text(ring(radius, h0, centre=(cx, cy), growth=growth))
