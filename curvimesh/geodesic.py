@@ -336,10 +336,49 @@ def parabola_length(
     ``two_segments`` ``(n,)``, when given, are the rows' lengths by the rule of
     two segments (:func:`parabola_length_rule`, same order), used instead of
     computing them again.
+
+    With a compiled metric every row is refined in one call
+    (:func:`curvimesh.kernels.parabola_lengths_adaptive`), the same arithmetic as the
+    loop over levels (:func:`_lengths_by_levels`), bit for bit.
     """
     x0 = np.asarray(x0, dtype=float).reshape(-1, 2)
     x1 = np.asarray(x1, dtype=float).reshape(-1, 2)
     xm = 0.5 * (x0 + x1) if xm is None else np.asarray(xm, dtype=float).reshape(-1, 2)
+    cm = field.kernel
+    if cm is None or len(x0) == 0:
+        return _lengths_by_levels(field, x0, x1, xm, rtol, order, max_segments, two_segments)
+    two = np.zeros(0) if two_segments is None else np.ascontiguousarray(two_segments, dtype=float)
+    out = np.empty(len(x0))
+    kernels.parabola_lengths_adaptive(
+        cm.g, *_rows(x0, x1, xm), two, *_doubling_rules(order, max_segments), rtol, out
+    )
+    return out
+
+
+@lru_cache(maxsize=8)
+def _doubling_rules(order: int, max_segments: int) -> tuple[NDArray, NDArray, NDArray]:
+    """The composite Gauss rules (:func:`gauss_rule`) of 1, 2, 4, … segments, up to the
+    first count of at least ``max_segments`` (two at least), end to end: nodes, weights
+    and the offsets ``(k + 1,)`` where each rule starts (cached; do not modify)."""
+    rules = [gauss_rule(1, order)]
+    while len(rules) < 2 or 2 ** (len(rules) - 1) < max_segments:
+        rules.append(gauss_rule(2 ** len(rules), order))
+    starts = np.cumsum([0] + [len(t) for t, _ in rules]).astype(np.int64)
+    return np.concatenate([t for t, _ in rules]), np.concatenate([w for _, w in rules]), starts
+
+
+def _lengths_by_levels(
+    field: MetricField,
+    x0: NDArray,
+    x1: NDArray,
+    xm: NDArray,
+    rtol: float,
+    order: int,
+    max_segments: int,
+    two_segments: NDArray | None,
+) -> NDArray:
+    """:func:`parabola_length` level by level: every row still refined measured at the
+    next rule in one call of :func:`parabola_length_rule`."""
     out = np.empty(len(x0))
     todo = np.arange(len(x0))
     s = 1

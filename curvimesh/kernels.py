@@ -625,6 +625,33 @@ def parabola_lengths(fn, x0, x1, xm, t, w, out):
         )
 
 
+@_row_kernel
+def parabola_lengths_adaptive(fn, x0, x1, xm, two, ts, ws, starts, rtol, out):
+    """Lengths of parabolas (rows of x0, x1, xm ``(n, 2)``) to ``rtol`` relative by
+    composite Gauss rules of doubling segment counts, into ``out``: rule k is
+    ``ts[starts[k]:starts[k + 1]]`` (weights ``ws``), with 2ᵏ segments. A row is done
+    at rule k ≥ 1 when it is within ``rtol`` × itself of rule k − 1, is not finite,
+    or k is the last rule. ``two`` ``(n,)`` holds the rows' lengths by rule 1 where it
+    is not empty (computed otherwise). Row by row the arithmetic of
+    :func:`curvimesh.geodesic.parabola_length`'s level-by-level loop, in one call."""
+    last = starts.shape[0] - 2
+    for i in prange(x0.shape[0]):
+        ax, ay, bx, by = x0[i, 0], x0[i, 1], x1[i, 0], x1[i, 1]
+        mx, my = xm[i, 0], xm[i, 1]
+        prev = _parabola_length(fn, ax, ay, bx, by, mx, my, ts[: starts[1]], ws[: starts[1]])
+        cur = prev
+        for k in range(1, last + 1):
+            if k == 1 and two.shape[0] > 0:
+                cur = two[i]
+            else:
+                lo, hi = starts[k], starts[k + 1]
+                cur = _parabola_length(fn, ax, ay, bx, by, mx, my, ts[lo:hi], ws[lo:hi])
+            if abs(cur - prev) <= rtol * abs(cur) or not math.isfinite(cur):
+                break
+            prev = cur
+        out[i] = cur
+
+
 @njit(**_JIT)
 def _offset_length(fn, ax, ay, bx, by, alpha, t, w):
     """Length of the parabola from a to b through (a + b)/2 + α (b − a)×e₃
@@ -2042,6 +2069,102 @@ def _metric_area(fn, nodes, shape, du, dv, w):
         dens = math.sqrt(g[0] * g[2] - g[1] * g[1])
         acc += dens * (xu * yv - xv * yu) * w[k]
     return acc
+
+
+@njit(fastmath={"contract"}, **_JIT)
+def _child_nodes(child, nodes, out):
+    """The nodes ``out`` ``(4, 6, 2)`` of the four children of the triangle6 ``nodes``
+    ``(6, 2)`` under midpoint subdivision: Σₐ child[k, a] xₐ with ``child`` ``(24, 6)``
+    the P2 shape functions at the children's nodes
+    (:data:`curvimesh.quality._CHILD_UV`), summed over a = 0 … 5 in order, each
+    product added in one fused multiply-add where the machine has it (as numpy's
+    matmul adds them through OpenBLAS on such machines: the children of
+    :func:`curvimesh.bezier.p2_map`, bit for bit)."""
+    for k in range(child.shape[0]):
+        for d in range(2):
+            acc = 0.0
+            for a in range(6):
+                acc += child[k, a] * nodes[a, d]
+            out[k // 6, k % 6, d] = acc
+
+
+@_row_kernel
+def child_nodes(child, nodes, out):
+    """:func:`_child_nodes` of each triangle6 of ``nodes`` ``(m, 6, 2)``, into ``out``
+    ``(m, 4, 6, 2)``: the one computation of the children that both ways of
+    :func:`curvimesh.quality.metric_areas_adaptive` use."""
+    for i in prange(nodes.shape[0]):
+        _child_nodes(child, nodes[i], out[i])
+
+
+@njit(**_JIT)
+def _adaptive_area(fn, tri, child, s4, du4, dv4, w4, s8, du8, dv8, w8, rtol, max_level):
+    """The metric area of one curved triangle ``tri`` ``(6, 2)`` by adaptive midpoint
+    subdivision (:func:`curvimesh.quality.metric_areas_adaptive`): each piece measured
+    by the rules of orders 4 and 8 (``s4 … w4``, ``s8 … w8``: :func:`_metric_area`'s
+    arguments), their difference its error; the pieces of a level in the order that
+    function's arrays hold them, so that every sum is made in the same order."""
+    pieces = np.empty((1, 6, 2))
+    pieces[0] = tri
+    share = np.ones(1)
+    fine = np.empty(1)
+    err = np.empty(1)
+    fine[0] = _metric_area(fn, tri, s8, du8, dv8, w8)
+    err[0] = abs(fine[0] - _metric_area(fn, tri, s4, du4, dv4, w4))
+    budget = rtol * abs(fine[0])
+    total = 0.0
+    for level in range(max_level + 1):
+        p = pieces.shape[0]
+        spent = 0.0
+        for k in range(p):
+            spent += err[k]
+        whole = spent <= budget or level == max_level
+        keep = np.empty(p, dtype=np.bool_)
+        paid = 0.0
+        split = 0
+        for k in range(p):
+            done = whole or not math.isfinite(err[k])
+            keep[k] = done or err[k] <= budget * share[k]
+            if keep[k]:
+                total += fine[k]
+                if not done:
+                    paid += err[k]
+            else:
+                split += 1
+        budget = budget - paid
+        if split == 0:
+            break
+        nxt = np.empty((4 * split, 6, 2))
+        nshare = np.empty(4 * split)
+        j = 0
+        for k in range(p):
+            if not keep[k]:
+                _child_nodes(child, pieces[k], nxt[4 * j : 4 * j + 4])
+                for c in range(4):
+                    nshare[4 * j + c] = share[k] / 4.0
+                j += 1
+        pieces, share = nxt, nshare
+        fine = np.empty(4 * split)
+        err = np.empty(4 * split)
+        for k in range(4 * split):
+            coarse = _metric_area(fn, pieces[k], s4, du4, dv4, w4)
+            fine[k] = _metric_area(fn, pieces[k], s8, du8, dv8, w8)
+            err[k] = abs(fine[k] - coarse)
+    return total
+
+
+@_row_kernel
+def metric_areas_adaptive(
+    fn, nodes, child, s4, du4, dv4, w4, s8, du8, dv8, w8, rtol, max_level, out
+):  # fmt: skip
+    """Metric areas of curved triangles ``nodes`` ``(m, 6, 2)`` to ``rtol`` (estimated) by
+    adaptive subdivision down to ``max_level`` (:func:`_adaptive_area`), into ``out``:
+    row by row the arithmetic of :func:`curvimesh.quality.metric_areas_adaptive`'s
+    level-by-level loop, in one call."""
+    for i in prange(nodes.shape[0]):
+        out[i] = _adaptive_area(
+            fn, nodes[i], child, s4, du4, dv4, w4, s8, du8, dv8, w8, rtol, max_level
+        )
 
 
 #: Corner pairs of the edges 01, 12, 20 of a triangle6 (``bezier.EDGES``).

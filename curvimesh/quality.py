@@ -213,8 +213,40 @@ def metric_areas_adaptive(
     the triangle is then taken unsplit. On 1 + 4 max(0, x − 0.35) over 3,954 random
     triangles (tests/test_quality.py), 8 missed 10 × ``rtol`` at ``rtol`` 1e-5, the
     worst by 3.5e-4 relative.
+
+    With a compiled metric, the whole subdivision of every triangle is one call
+    (:func:`curvimesh.kernels.metric_areas_adaptive`), the same arithmetic in the
+    same order as the loop over levels (:func:`_areas_by_levels`), bit for bit.
     """
-    nodes = np.asarray(nodes, dtype=float).reshape(-1, 6, 2)
+    nodes = np.ascontiguousarray(nodes, dtype=float).reshape(-1, 6, 2)
+    cm = field.kernel
+    if cm is None or len(nodes) == 0:
+        return _areas_by_levels(field, nodes, rtol, max_level)
+    out = np.empty(len(nodes))
+    kernels.metric_areas_adaptive(
+        cm.g, nodes, _child_shape(), *area_rule(4), *area_rule(8), rtol, max_level, out
+    )
+    return out
+
+
+@lru_cache(maxsize=1)
+def _child_shape() -> NDArray:
+    """The P2 shape functions ``(24, 6)`` at the nodes of the four children
+    (:data:`_CHILD_UV`): :func:`curvimesh.bezier.p2_map`'s matrix for them."""
+    return np.ascontiguousarray(p2_shape(_CHILD_UV))
+
+
+def _children(nodes: NDArray) -> NDArray:
+    """The nodes ``(4m, 6, 2)`` of the four children of each triangle6 ``(m, 6, 2)``, in
+    order (:func:`curvimesh.kernels.child_nodes`: ``p2_map(nodes, _CHILD_UV)``)."""
+    out = np.empty((len(nodes), 4, 6, 2))
+    kernels.child_nodes(_child_shape(), np.ascontiguousarray(nodes, dtype=float), out)
+    return out.reshape(-1, 6, 2)
+
+
+def _areas_by_levels(field: MetricField, nodes: NDArray, rtol: float, max_level: int) -> NDArray:
+    """:func:`metric_areas_adaptive` level by level, every piece of a level measured
+    in one call of :func:`metric_areas`."""
     m = len(nodes)
     total = np.zeros(m)
     if m == 0:
@@ -234,7 +266,7 @@ def metric_areas_adaptive(
         split = ~keep
         if not split.any():
             break
-        nodes = p2_map(nodes[split], _CHILD_UV).reshape(-1, 6, 2)
+        nodes = _children(nodes[split])
         owner = np.repeat(owner[split], 4)
         share = np.repeat(share[split] / 4.0, 4)
         coarse = metric_areas(field, nodes, order=4, remember=False)

@@ -567,6 +567,61 @@ def test_compiled_metric_areas_match_numpy(name):
     np.testing.assert_allclose(got, want, rtol=1e-11 if name == "three_toys" else 1e-13)
 
 
+def _curved_triangles(fld: MetricField, n: int, seed: int) -> np.ndarray:
+    """Curved triangles ``(n, 6, 2)`` about random points of the box, of sizes 10⁻³ – 0.3."""
+    rng = np.random.default_rng(seed)
+    centre = box_points(fld, n, seed)[:, None, :]
+    size = 10 ** rng.uniform(-3, -0.5, (n, 1, 1))
+    corners = centre + size * rng.normal(size=(n, 3, 2))
+    mids = 0.5 * (corners + corners[:, [1, 2, 0]]) + 0.1 * size * rng.normal(size=(n, 3, 2))
+    return np.concatenate([corners, mids], axis=1)
+
+
+def test_children_are_the_p2_map_of_the_quarter_points():
+    from curvimesh.bezier import p2_map
+    from curvimesh.quality import _CHILD_UV, _children
+
+    nodes = _curved_triangles(load_metric(METRICS / "toy.yaml"), 200, 45)
+    got = _children(nodes).reshape(200, 24, 2)
+    want = p2_map(nodes, _CHILD_UV)  # numpy's matmul: the same sums, fused or not
+    np.testing.assert_allclose(got, want, rtol=0, atol=4e-16 * np.abs(nodes).max())
+    # a child's corners and edge midpoints are the parent's map at its quarter points:
+    # the middle child's corners are the parent's edge nodes
+    np.testing.assert_array_equal(got[:, 18:21], nodes[:, [3, 4, 5]])
+
+
+@pytest.mark.parametrize("name", ["three_toys", "quartic"])
+def test_compiled_adaptive_areas_are_the_level_by_level_loop_bit_for_bit(name):
+    from curvimesh.quality import AREA_MAX_LEVEL, REPORT_RTOL, _areas_by_levels
+    from curvimesh.quality import metric_areas_adaptive as adaptive
+
+    fld = load_metric(METRICS / f"{name}.yaml")
+    nodes = _curved_triangles(fld, 400, 43)
+    for rtol, level in ((REPORT_RTOL, AREA_MAX_LEVEL), (1e-9, 3), (0.0, 2)):
+        got = adaptive(fld, nodes, rtol=rtol, max_level=level)
+        want = _areas_by_levels(fld, nodes, rtol, level)
+        assert np.array_equal(got, want, equal_nan=True)
+    # the loop's deeper levels were reached (the three toys' kinks, the quartic's bends)
+    assert not np.array_equal(adaptive(fld, nodes, max_level=0), adaptive(fld, nodes))
+
+
+@pytest.mark.parametrize("name", ["three_toys", "quartic"])
+@pytest.mark.parametrize("max_segments", [1, 2, 100, 256])
+def test_compiled_adaptive_lengths_are_the_level_by_level_loop_bit_for_bit(name, max_segments):
+    fld = load_metric(METRICS / f"{name}.yaml")
+    nodes = _curved_triangles(fld, 400, 44)
+    x0, x1, xm = nodes[:, 0], nodes[:, 1], nodes[:, 3]
+    two = geo.parabola_length_rule(fld, x0, x1, xm, segments=2, order=5)
+    for given_two in (None, two):
+        got = geo.parabola_length(
+            fld, x0, x1, xm, rtol=1e-8, max_segments=max_segments, two_segments=given_two
+        )
+        want = geo._lengths_by_levels(fld, x0, x1, xm, 1e-8, 5, max_segments, given_two)
+        assert np.array_equal(got, want, equal_nan=True)
+    if max_segments == 256:  # rows were refined past two segments
+        assert not np.array_equal(geo.parabola_length(fld, x0, x1, xm, max_segments=2), got)
+
+
 def test_guided_search_keeps_the_scans_minimum_when_the_guess_is_in_a_worse_basin():
     # a costly spot on the chord's middle: parabolas pass it below (α > 0), where the
     # metric is cheaper (1 + 0.3 y), or above (α < 0): two minima in α, 1.254 and 1.335
