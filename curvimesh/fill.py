@@ -52,6 +52,29 @@ def metric_circumcentres(
     return centre, radius
 
 
+def circumcentres_again(
+    field: MetricField,
+    pts: NDArray,
+    tris: NDArray,
+    keys: NDArray,
+    known: tuple[NDArray, NDArray, NDArray] | None,
+) -> tuple[NDArray, NDArray]:
+    """:func:`metric_circumcentres` of triangles ``(m, 3+)`` whose corner ids in order
+    have the keys ``keys`` ``(m,)`` (:func:`_source_keys`), taken from ``known``
+    (ascending keys, centres, radii of an earlier call on the same points) where a
+    triangle is there: each row is a function of its own corners, in order."""
+    if known is None or len(known[0]) == 0:
+        return metric_circumcentres(field, pts, tris)
+    old, old_centre, old_radius = known
+    pos = np.minimum(np.searchsorted(old, keys), len(old) - 1)
+    hit = old[pos] == keys
+    centre, radius = np.empty((len(tris), 2)), np.empty(len(tris))
+    centre[hit], radius[hit] = old_centre[pos[hit]], old_radius[pos[hit]]
+    miss = ~hit
+    centre[miss], radius[miss] = metric_circumcentres(field, pts, tris[miss])
+    return centre, radius
+
+
 def _source_keys(ids: NDArray, n: int) -> NDArray:
     """One int64 key per row of ids (i, j, k) over n points (k = −1 for a pair):
     ((i (n + 1) + j) (n + 1) + k + 1), below 2⁶³ up to 2 million points."""
@@ -82,6 +105,7 @@ def fill_gaps(
     index.add(pts)
     done_keys = np.zeros(0, dtype=np.int64)  # edges already measured and found short
     refused = np.zeros(0, dtype=np.int64)  # sources of candidates refused for good
+    known = None  # the last round's triangles (ascending keys), circumcentres and radii
     for _ in range(max_rounds):
         mesh = metric_delaunay_of(field, pts, field.box)
         e = mesh.edges
@@ -98,7 +122,10 @@ def fill_gaps(
         done_keys = sorted_union(done_keys, keys[~long])
         # Delaunay refinement: a triangle whose empty circumcircle (in the metric)
         # has a radius above max_length / 2 can take its circumcentre.
-        centre, radius = metric_circumcentres(field, pts, mesh.triangles)
+        tri_keys = _source_keys(mesh.triangles[:, :3], n)
+        centre, radius = circumcentres_again(field, pts, mesh.triangles, tri_keys, known)
+        by_key = np.argsort(tri_keys)
+        known = (tri_keys[by_key], centre[by_key], radius[by_key])
         big = np.isfinite(radius) & (radius > 0.5 * max_length)
         if not long.any() and not big.any():
             break
@@ -125,4 +152,5 @@ def fill_gaps(
         # node ids stay the same as points are appended: keys stay valid only if n is fixed
         done_keys = (done_keys // n) * len(pts) + done_keys % n
         refused = _renumbered(refused, n, len(pts))
+        known = (_renumbered(known[0], n, len(pts)), known[1], known[2])
     return np.array(pts)

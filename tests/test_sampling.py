@@ -120,6 +120,30 @@ def test_fill_source_keys_survive_renumbering(n, extra, data):
     )
 
 
+@pytest.mark.parametrize("name", ["three_toys", "quartic2"])
+def test_circumcentres_kept_from_the_last_round_are_computed_ones_bit_for_bit(name, monkeypatch):
+    fld = load_metric(METRICS / f"{name}.yaml")
+    opt = sampling.SamplingOptions()
+    pts = sampling.sample_points(
+        fld, discretize_box(fld, target=opt.step, min_dist=opt.min_dist), opt
+    )
+    tris = fill.metric_delaunay_of(fld, pts, fld.box).triangles
+    keys = fill._source_keys(tris[:, :3], len(pts))
+    half = np.arange(0, len(tris), 2)  # every other triangle known, with its own keys
+    by_key = np.argsort(keys[half])
+    centre, radius = fill.metric_circumcentres(fld, pts, tris)
+    known = (keys[half][by_key], centre[half][by_key], radius[half][by_key])
+    again = fill.circumcentres_again(fld, pts, tris, keys, known)
+    np.testing.assert_array_equal(again[0], centre)
+    np.testing.assert_array_equal(again[1], radius)
+    # and the rounds of gap filling keep the same points when every round computes them all
+    kept = fill.fill_gaps(fld, pts, opt)
+    monkeypatch.setattr(
+        fill, "circumcentres_again", lambda f, p, t, k, known: fill.metric_circumcentres(f, p, t)
+    )
+    np.testing.assert_array_equal(kept, fill.fill_gaps(fld, pts, opt))
+
+
 @pytest.mark.parametrize("name", ["three_toys", "quartic2", "boundary_layer"])
 def test_gap_filling_without_retesting_refused_candidates_is_the_same(name, monkeypatch):
     fld = load_metric(METRICS / f"{name}.yaml")
