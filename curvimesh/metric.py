@@ -239,6 +239,15 @@ class MetricField:
     #: Evaluate through compiled scalar code (:attr:`kernel`) where the metric has one.
     jit: bool = True
 
+    def __hash__(self) -> int:
+        """The dataclass's hash (of all the fields), made once: the memo tables and the
+        caches keyed by the field hash it about 1,500 times a run, 6 µs each."""
+        return self._hash
+
+    @cached_property
+    def _hash(self) -> int:
+        return hash((self.components, self.box, self.name, self.source, self.jit))
+
     def evaluate(
         self, pts: NDArray, *, derivatives: bool = False, check: bool = True
     ) -> tuple[NDArray, NDArray | None]:

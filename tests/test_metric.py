@@ -340,3 +340,14 @@ def test_metric_area_of_a_steep_wall_layer_against_adaptive_1d_quadrature():
     fld = load_metric(METRICS / "wall_layer_steep.yaml")
     assert density_integral(fld) == pytest.approx(exact, rel=2e-5)
     assert density_integral(fld, rtol=1e-8) == pytest.approx(exact, rel=1e-8)
+
+
+def test_a_fields_hash_is_made_once_and_is_the_dataclass_hash_of_all_its_fields():
+    import dataclasses
+
+    text = (METRICS / "three_toys.yaml").read_text()
+    fld, same = load_metric_text(text), load_metric_text(text)
+    fields = tuple(getattr(fld, f.name) for f in dataclasses.fields(fld))
+    assert hash(fld) == hash(fields) == hash(same) and fld == same
+    assert hash(dataclasses.replace(fld, jit=False)) != hash(fld)
+    assert "_hash" in vars(fld)  # kept after the first call
