@@ -14,6 +14,7 @@ import math
 import os
 from pathlib import Path
 
+import numba
 import numpy as np
 import pytest
 import sympy
@@ -596,11 +597,13 @@ def test_compiled_adaptive_areas_are_the_level_by_level_loop_bit_for_bit(name):
     from curvimesh.quality import metric_areas_adaptive as adaptive
 
     fld = load_metric(METRICS / f"{name}.yaml")
-    nodes = _curved_triangles(fld, 400, 43)
+    nodes = _curved_triangles(fld, 2 * kernels.PARALLEL_ROWS, 43)  # threads take chunks
+    chunk = numba.get_parallel_chunksize()
     for rtol, level in ((REPORT_RTOL, AREA_MAX_LEVEL), (1e-9, 3), (0.0, 2)):
         got = adaptive(fld, nodes, rtol=rtol, max_level=level)
         want = _areas_by_levels(fld, nodes, rtol, level)
         assert np.array_equal(got, want, equal_nan=True)
+    assert numba.get_parallel_chunksize() == chunk  # the kernel's chunks are its own
     # the loop's deeper levels were reached (the three toys' kinks, the quartic's bends)
     assert not np.array_equal(adaptive(fld, nodes, max_level=0), adaptive(fld, nodes))
 
@@ -609,7 +612,7 @@ def test_compiled_adaptive_areas_are_the_level_by_level_loop_bit_for_bit(name):
 @pytest.mark.parametrize("max_segments", [1, 2, 100, 256])
 def test_compiled_adaptive_lengths_are_the_level_by_level_loop_bit_for_bit(name, max_segments):
     fld = load_metric(METRICS / f"{name}.yaml")
-    nodes = _curved_triangles(fld, 400, 44)
+    nodes = _curved_triangles(fld, 2 * kernels.PARALLEL_ROWS, 44)  # threads take chunks
     x0, x1, xm = nodes[:, 0], nodes[:, 1], nodes[:, 3]
     two = geo.parabola_length_rule(fld, x0, x1, xm, segments=2, order=5)
     for given_two in (None, two):
