@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from curvimesh.freenode import bounded_lengths
-from curvimesh.mesh import sorted_member, sorted_union
+from curvimesh.mesh import sorted_find, sorted_member, sorted_union
 from curvimesh.metric import MetricField
 from curvimesh.sampling import SamplingOptions, admissible_rows, conflict_free
 from curvimesh.spatial import PointIndex
@@ -66,8 +66,7 @@ def circumcentres_again(
     if known is None or len(known[0]) == 0:
         return metric_circumcentres(field, pts, tris)
     old, old_centre, old_radius = known
-    pos = np.minimum(np.searchsorted(old, keys), len(old) - 1)
-    hit = old[pos] == keys
+    pos, hit = sorted_find(old, keys)
     centre, radius = np.empty((len(tris), 2)), np.empty(len(tris))
     centre[hit], radius[hit] = old_centre[pos[hit]], old_radius[pos[hit]]
     miss = ~hit
@@ -124,8 +123,6 @@ def fill_gaps(
         # has a radius above max_length / 2 can take its circumcentre.
         tri_keys = _source_keys(mesh.triangles[:, :3], n)
         centre, radius = circumcentres_again(field, pts, mesh.triangles, tri_keys, known)
-        by_key = np.argsort(tri_keys)
-        known = (tri_keys[by_key], centre[by_key], radius[by_key])
         big = np.isfinite(radius) & (radius > 0.5 * max_length)
         if not long.any() and not big.any():
             break
@@ -152,5 +149,6 @@ def fill_gaps(
         # node ids stay the same as points are appended: keys stay valid only if n is fixed
         done_keys = (done_keys // n) * len(pts) + done_keys % n
         refused = _renumbered(refused, n, len(pts))
-        known = (_renumbered(known[0], n, len(pts)), known[1], known[2])
+        by_key = np.argsort(tri_keys)  # for the next round, over its points
+        known = (_renumbered(tri_keys[by_key], n, len(pts)), centre[by_key], radius[by_key])
     return np.array(pts)

@@ -42,6 +42,7 @@ __all__ = [
     "is_conforming",
     "p1_of",
     "signed_areas",
+    "sorted_find",
     "sorted_member",
     "sorted_union",
     "to_p2_straight",
@@ -462,17 +463,30 @@ def cells_at_vertices(cells: NDArray, n: int) -> tuple[NDArray, NDArray]:
     return start, by_vertex // cells.shape[1]
 
 
+def sorted_find(sorted_keys: NDArray, keys: NDArray) -> tuple[NDArray, NDArray[np.bool_]]:
+    """Where each of ``keys`` ``(k,)`` is in the ascending array ``sorted_keys`` and
+    whether it is there, by binary search: positions ``(k,)`` (clipped to the last
+    one; 0 while ``sorted_keys`` is empty) and ``(k,)`` found.
+
+    >>> pos, found = sorted_find(np.array([2, 5, 9]), np.array([9, 1, 5, 10]))
+    >>> pos.tolist(), found.tolist()
+    ([2, 0, 1, 2], [True, False, True, False])
+    """
+    if len(sorted_keys) == 0:
+        return np.zeros(len(keys), dtype=np.int64), np.zeros(len(keys), dtype=bool)
+    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+    return pos, sorted_keys[pos] == keys
+
+
 def sorted_member(sorted_keys: NDArray, keys: NDArray) -> NDArray[np.bool_]:
     """Whether each of ``keys`` ``(k,)`` is in the ascending array ``sorted_keys``, by
-    binary search (np.isin sorts or hashes both arrays at every call).
+    binary search (:func:`sorted_find`; np.isin sorts or hashes both arrays at every
+    call).
 
     >>> sorted_member(np.array([2, 5, 9]), np.array([9, 1, 5, 10])).tolist()
     [True, False, True, False]
     """
-    if len(sorted_keys) == 0:
-        return np.zeros(len(keys), dtype=bool)
-    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
-    return sorted_keys[pos] == keys
+    return sorted_find(sorted_keys, keys)[1]
 
 
 def sorted_union(sorted_keys: NDArray, keys: NDArray) -> NDArray:
@@ -503,15 +517,8 @@ class EdgeStore:
         return np.minimum(a, b) * self.n + np.maximum(a, b)
 
     def find(self, keys: NDArray) -> tuple[NDArray, NDArray]:
-        """Positions of keys in the store and whether they are there."""
-        pos = np.searchsorted(self.keys, keys)
-        pos = np.minimum(pos, max(len(self.keys) - 1, 0))
-        found = (
-            (len(self.keys) > 0) & (self.keys[pos] == keys)
-            if len(self.keys)
-            else (np.zeros(len(keys), dtype=bool))
-        )
-        return pos, found
+        """Positions of keys in the store and whether they are there (:func:`sorted_find`)."""
+        return sorted_find(self.keys, keys)
 
     def add(self, keys: NDArray, mid: NDArray, length: NDArray) -> None:
         """Insert or overwrite entries."""

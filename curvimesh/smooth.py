@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from curvimesh.freenode import shortest_parabola
 from curvimesh.geodesic import geodesic_alpha, parabola_length_rule, parabola_midnode
-from curvimesh.mesh import Mesh, signed_areas
+from curvimesh.mesh import Mesh, signed_areas, sorted_find
 from curvimesh.metric import MetricField
 from curvimesh.sampling import too_close
 from curvimesh.triangulate import metric_delaunay
@@ -107,8 +107,8 @@ def carried(old_edges: NDArray, values: NDArray, edges: NDArray, n: int) -> NDAr
     NaN for the new ones."""
     old_keys = old_edges[:, 0] * n + old_edges[:, 1]
     keys = edges[:, 0] * n + edges[:, 1]
-    pos = np.minimum(np.searchsorted(old_keys, keys), len(old_keys) - 1)
-    return np.where(old_keys[pos] == keys, values[pos], np.nan)
+    pos, found = sorted_find(old_keys, keys)
+    return np.where(found, values[pos], np.nan)
 
 
 def _undo_bad_moves(
