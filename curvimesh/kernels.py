@@ -2135,16 +2135,15 @@ def _adaptive_area(fn, tri, child, s4, du4, dv4, w4, s8, du8, dv8, w8, rtol, max
     pieces = np.empty((4, 6, 2))
     _child_nodes(child, tri, pieces)
     share = np.full(4, 0.25)
-    fine = np.empty(4)
-    err = np.empty(4)
-    for k in range(4):
-        coarse = _metric_area(fn, pieces[k], s4, du4, dv4, w4)
-        fine[k] = _metric_area(fn, pieces[k], s8, du8, dv8, w8)
-        err[k] = abs(fine[k] - coarse)
     for level in range(1, max_level + 1):
         p = pieces.shape[0]
+        fine = np.empty(p)
+        err = np.empty(p)
         spent = 0.0
         for k in range(p):
+            coarse = _metric_area(fn, pieces[k], s4, du4, dv4, w4)
+            fine[k] = _metric_area(fn, pieces[k], s8, du8, dv8, w8)
+            err[k] = abs(fine[k] - coarse)
             spent += err[k]
         whole = spent <= budget or level == max_level
         keep = np.empty(p, dtype=np.bool_)
@@ -2172,12 +2171,6 @@ def _adaptive_area(fn, tri, child, s4, du4, dv4, w4, s8, du8, dv8, w8, rtol, max
                     nshare[4 * j + c] = share[k] / 4.0
                 j += 1
         pieces, share = nxt, nshare
-        fine = np.empty(4 * split)
-        err = np.empty(4 * split)
-        for k in range(4 * split):
-            coarse = _metric_area(fn, pieces[k], s4, du4, dv4, w4)
-            fine[k] = _metric_area(fn, pieces[k], s8, du8, dv8, w8)
-            err[k] = abs(fine[k] - coarse)
     return total
 
 
