@@ -24,6 +24,7 @@ from curvimesh.mesh import (
     independent_flips,
     is_conforming,
     signed_areas,
+    sorted_find,
 )
 
 
@@ -249,8 +250,8 @@ def delaunay_insert(mesh: Mesh, new: NDArray) -> Mesh | None:
 
     def side_of(a: NDArray, b: NDArray) -> NDArray:
         """Flat index (3 t + k) of the side a → b of DT(S), or −1."""
-        pos = np.minimum(np.searchsorted(sorted_key, a * ns + b), len(key) - 1)
-        return np.where(sorted_key[pos] == a * ns + b, order[pos], -1)
+        pos, found = sorted_find(sorted_key, a * ns + b)
+        return np.where(found, order[pos], -1)
 
     seed, twin = side_of(u, v), side_of(v, u)
     if (seed < 0).any():
