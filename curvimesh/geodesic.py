@@ -317,6 +317,11 @@ def parabola_length_rule(
     return out
 
 
+#: The Gauss order of :func:`parabola_length`'s composite rules, and its most segments.
+LENGTH_ORDER = 5
+LENGTH_MAX_SEGMENTS = 256
+
+
 def parabola_length(
     field: MetricField,
     x0: NDArray,
@@ -324,8 +329,8 @@ def parabola_length(
     xm: NDArray | None = None,
     *,
     rtol: float = 1e-5,
-    order: int = 5,
-    max_segments: int = 256,
+    order: int = LENGTH_ORDER,
+    max_segments: int = LENGTH_MAX_SEGMENTS,
     two_segments: NDArray | None = None,
 ) -> NDArray:
     """Metric length of parabolas ``(n,)`` to relative accuracy ``rtol``.
@@ -350,13 +355,13 @@ def parabola_length(
     two = np.zeros(0) if two_segments is None else np.ascontiguousarray(two_segments, dtype=float)
     out = np.empty(len(x0))
     kernels.parabola_lengths_adaptive(
-        cm.g, *_rows(x0, x1, xm), two, *_doubling_rules(order, max_segments), rtol, out
+        cm.g, *_rows(x0, x1, xm), two, *doubling_rules(order, max_segments), rtol, out
     )
     return out
 
 
 @lru_cache(maxsize=8)
-def _doubling_rules(order: int, max_segments: int) -> tuple[NDArray, NDArray, NDArray]:
+def doubling_rules(order: int, max_segments: int) -> tuple[NDArray, NDArray, NDArray]:
     """The composite Gauss rules (:func:`gauss_rule`) of 1, 2, 4, … segments, up to the
     first count of at least ``max_segments`` (two at least), end to end: nodes, weights
     and the offsets ``(k + 1,)`` where each rule starts (cached; do not modify)."""

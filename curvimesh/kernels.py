@@ -654,22 +654,30 @@ def parabola_lengths_adaptive(fn, x0, x1, xm, two, ts, ws, starts, rtol, out):
     or k is the last rule. ``two`` ``(n,)`` holds the rows' lengths by rule 1 where it
     is not empty (computed otherwise). Row by row the arithmetic of
     :func:`curvimesh.geodesic.parabola_length`'s level-by-level loop, in one call."""
-    last = starts.shape[0] - 2
     for i in prange(x0.shape[0]):
-        ax, ay, bx, by = x0[i, 0], x0[i, 1], x1[i, 0], x1[i, 1]
-        mx, my = xm[i, 0], xm[i, 1]
-        prev = _parabola_length(fn, ax, ay, bx, by, mx, my, ts[: starts[1]], ws[: starts[1]])
-        cur = prev
-        for k in range(1, last + 1):
-            if k == 1 and two.shape[0] > 0:
-                cur = two[i]
-            else:
-                lo, hi = starts[k], starts[k + 1]
-                cur = _parabola_length(fn, ax, ay, bx, by, mx, my, ts[lo:hi], ws[lo:hi])
-            if abs(cur - prev) <= rtol * abs(cur) or not math.isfinite(cur):
-                break
-            prev = cur
-        out[i] = cur
+        out[i] = _adaptive_length(
+            fn, x0[i, 0], x0[i, 1], x1[i, 0], x1[i, 1], xm[i, 0], xm[i, 1],
+            two[i] if two.shape[0] > 0 else math.nan, two.shape[0] > 0, ts, ws, starts, rtol,
+        )  # fmt: skip
+
+
+@njit(**_JIT)
+def _adaptive_length(fn, ax, ay, bx, by, mx, my, two, has_two, ts, ws, starts, rtol):
+    """The length of one parabola to ``rtol`` (:func:`parabola_lengths_adaptive`); ``two``
+    its length by rule 1 where ``has_two``."""
+    last = starts.shape[0] - 2
+    prev = _parabola_length(fn, ax, ay, bx, by, mx, my, ts[: starts[1]], ws[: starts[1]])
+    cur = prev
+    for k in range(1, last + 1):
+        if k == 1 and has_two:
+            cur = two
+        else:
+            lo, hi = starts[k], starts[k + 1]
+            cur = _parabola_length(fn, ax, ay, bx, by, mx, my, ts[lo:hi], ws[lo:hi])
+        if abs(cur - prev) <= rtol * abs(cur) or not math.isfinite(cur):
+            break
+        prev = cur
+    return cur
 
 
 @njit(**_JIT)
@@ -2304,7 +2312,6 @@ def screen_moves(
     nodes = np.empty((6, 2))
     mid = np.empty((j, 2))
     b = np.empty(6)
-    scale = 4.0 * math.sqrt(3.0)
     top = np.full(max(keep, 1), -math.inf)  # the best scores so far, descending
     found = 0
     first_e = first_r = 0
@@ -2343,14 +2350,7 @@ def screen_moves(
             r = (first_r + i) % s
             _star_triangle(nodes, base, slots, r, ax, ay, mid)
             area = _metric_area(fn, nodes, shape, du, dv, aw)
-            total = 0.0
-            for m in range(3):
-                slot = slots[r, 3 + m]
-                length = new_len[c, slot] if slot >= 0 else lens0[r, m]
-                total += length**2
-            q = scale * area / total
-            if not math.isfinite(q):
-                q = 0.0
+            q = _star_quality(area, slots, lens0, new_len[c], r)
             if q < least:
                 least, low_r = q, r
             if least <= floor:
@@ -2368,6 +2368,155 @@ def screen_moves(
                 i -= 1
             top[i] = score
             found += 1
+
+
+@njit(**_JIT)
+def _star_quality(area, slots, lens0, r_lens, r):
+    """Quality (4) of a star's triangle r (:func:`screen_moves`' ``slots``) of metric area
+    ``area``, its incident edges ``r_lens`` ``(j,)`` long, its other edges as ``lens0[r]``:
+    4√3 A / ΣL², 0 where not finite (:func:`curvimesh.quality.quality_from`)."""
+    total = 0.0
+    for m in range(3):
+        slot = slots[r, 3 + m]
+        length = r_lens[slot] if slot >= 0 else lens0[r, m]
+        total += length**2
+    q = 4.0 * math.sqrt(3.0) * area / total
+    return q if math.isfinite(q) else 0.0
+
+
+@njit(**_JIT)
+def _star_qualities(fn, base, slots, lens0, r_lens, ax, ay, mid, shape, du, dv, aw, nodes, q):
+    """Qualities (4) ``q`` ``(s,)`` of a star's triangles (:func:`_star_triangle`,
+    :func:`_star_quality`), areas by the rule ``shape``, ``du``, ``dv``, ``aw``."""
+    for r in range(base.shape[0]):
+        _star_triangle(nodes, base, slots, r, ax, ay, mid)
+        q[r] = _star_quality(_metric_area(fn, nodes, shape, du, dv, aw), slots, lens0, r_lens, r)
+
+
+@njit(**_JIT)
+def _backtracked(ax, ay, others, optimal, frac, mid):
+    """Middle nodes ``mid`` ``(j, 2)`` of the edges from (ax, ay) to ``others`` ``(j, 2)``,
+    ``frac`` of the way from the straight ones to ``optimal`` ``(j, 2)``."""
+    for e in range(others.shape[0]):
+        sx = 0.5 * (ax + others[e, 0])
+        sy = 0.5 * (ay + others[e, 1])
+        mid[e, 0] = sx + frac * (optimal[e, 0] - sx)
+        mid[e, 1] = sy + frac * (optimal[e, 1] - sy)
+
+
+@njit(**_JIT)
+def _lengths_ok(lens, shortest, longest, by_quality):
+    """:meth:`curvimesh.shift._Rule.lengths_ok` of one row of lengths ``(j,)``."""
+    for e in range(lens.shape[0]):
+        below = lens[e] <= longest if by_quality else lens[e] < longest
+        if not (below and lens[e] >= shortest):
+            return False
+    return True
+
+
+@njit(**_JIT)
+def best_move(
+    fn, cand, others, optimal, base, slots, lens0, backtrack, t, w, gu, gv, valid_rtol,
+    s4, du4, dv4, w4, child, s8, du8, dv8, w8, ts, ws, starts, rtol, max_level, shortest,
+    longest, q_min, by_quality, push, remeasure_below, out_mid, out_len, out_q,
+):  # fmt: skip
+    """:func:`curvimesh.shift._best_move` after its searches: the best admissible move of
+    a star's vertex to one of ``cand`` ``(k, 2)``, each incident edge (other ends
+    ``others`` ``(j, 2)``) through a middle node between the straight one and its
+    shortest parabola's ``optimal`` ``(k, j, 2)``; the candidate's index (its middle
+    nodes into ``out_mid`` ``(j, 2)``, its exact lengths into ``out_len`` ``(j,)`` and
+    its star's qualities into ``out_q`` ``(s,)``), or −1.
+
+    Star as :func:`screen_moves` takes it (``base``, ``slots``, ``lens0``). For each
+    fraction of ``backtrack`` in turn, the candidates not yet valid are tried with
+    their nodes at it: valid (:func:`_valid_p2`), lengths by the rule (``t``, ``w``) in
+    the rule's bounds (``shortest``, ``longest``, ``by_quality``: :func:`_lengths_ok`),
+    scored by the longest length (a long-edge move) or, for a quality move, by the
+    worst quality of the star (areas by ``s4`` … ``w4``) or the length of incident edge
+    ``push`` (then only above ``q_min``), lower first. The four best, ties to the
+    lower index, are measured exactly in turn: lengths to ``rtol``
+    (:func:`_adaptive_length`, rules ``ts``, ``ws``, ``starts``) in the bounds, and the
+    qualities of the star, by the rule of order 4 and, below ``remeasure_below``, to
+    ``rtol`` (:func:`_adaptive_area`); the first whose worst quality is above ``q_min``
+    (at least, for a long-edge move) is the move. The same arithmetic in the same order
+    as the numpy code, which :mod:`curvimesh.shift` keeps for metrics without compiled
+    code."""
+    k, j, s = cand.shape[0], others.shape[0], base.shape[0]
+    nodes = np.empty((6, 2))
+    b = np.empty(6)
+    mid = np.empty((j, 2))
+    lens = np.empty(j)
+    q = np.empty(s)
+    todo = np.ones(k, dtype=np.bool_)
+    level = np.full(k, -1, dtype=np.int64)
+    score = np.empty(k)
+    for lv in range(backtrack.shape[0]):
+        frac = backtrack[lv]
+        for c in range(k):
+            if not todo[c]:
+                continue
+            ax, ay = cand[c, 0], cand[c, 1]
+            _backtracked(ax, ay, others, optimal[c], frac, mid)
+            valid = True
+            for r in range(s):
+                _star_triangle(nodes, base, slots, r, ax, ay, mid)
+                if not _valid_p2(nodes, gu, gv, valid_rtol, b):
+                    valid = False
+                    break
+            if not valid:
+                continue
+            todo[c] = False
+            for e in range(j):
+                lens[e] = _parabola_length(
+                    fn, ax, ay, others[e, 0], others[e, 1], mid[e, 0], mid[e, 1], t, w
+                )
+            if not _lengths_ok(lens, shortest, longest, by_quality):
+                continue
+            if by_quality:
+                _star_qualities(
+                    fn, base, slots, lens0, lens, ax, ay, mid, s4, du4, dv4, w4, nodes, q
+                )
+                worst = q[0]
+                for r in range(1, s):
+                    worst = min(worst, q[r])
+                if push >= 0 and not worst > q_min:
+                    continue
+                score[c] = -lens[push] if push >= 0 else -worst
+            else:
+                top = lens[0]
+                for e in range(1, j):
+                    top = max(top, lens[e])
+                score[c] = top
+            level[c] = lv
+    found = np.flatnonzero(level >= 0)  # ascending index: the sort's ties
+    order = found[np.argsort(score[found], kind="mergesort")]
+    for c in order[:4]:
+        ax, ay = cand[c, 0], cand[c, 1]
+        _backtracked(ax, ay, others, optimal[c], backtrack[level[c]], mid)
+        for e in range(j):
+            lens[e] = _adaptive_length(
+                fn, ax, ay, others[e, 0], others[e, 1], mid[e, 0], mid[e, 1], math.nan, False,
+                ts, ws, starts, rtol,
+            )  # fmt: skip
+        if not _lengths_ok(lens, shortest, longest, by_quality):
+            continue
+        _star_qualities(fn, base, slots, lens0, lens, ax, ay, mid, s4, du4, dv4, w4, nodes, q)
+        for r in range(s):
+            if q[r] < remeasure_below:
+                _star_triangle(nodes, base, slots, r, ax, ay, mid)
+                area = _adaptive_area(
+                    fn, nodes, child, s4, du4, dv4, w4, s8, du8, dv8, w8, rtol, max_level
+                )
+                q[r] = _star_quality(area, slots, lens0, lens, r)
+        worst = q[0]
+        for r in range(1, s):
+            worst = min(worst, q[r])
+        if worst > q_min if by_quality else worst >= q_min:
+            out_mid[:, :] = mid
+            out_len[:] = lens
+            out_q[:] = q
+            return c
+    return -1
 
 
 # --------------------------------------------------------------------------- #

@@ -224,13 +224,13 @@ def metric_areas_adaptive(
         return _areas_by_levels(field, nodes, rtol, max_level)
     out = np.empty(len(nodes))
     kernels.metric_areas_adaptive(
-        cm.g, nodes, _child_shape(), *area_rule(4), *area_rule(8), rtol, max_level, out
+        cm.g, nodes, child_shape(), *area_rule(4), *area_rule(8), rtol, max_level, out
     )
     return out
 
 
 @lru_cache(maxsize=1)
-def _child_shape() -> NDArray:
+def child_shape() -> NDArray:
     """The P2 shape functions ``(24, 6)`` at the nodes of the four children
     (:data:`_CHILD_UV`): :func:`curvimesh.bezier.p2_map`'s matrix for them."""
     return np.ascontiguousarray(p2_shape(_CHILD_UV))
@@ -240,7 +240,7 @@ def _children(nodes: NDArray) -> NDArray:
     """The nodes ``(4m, 6, 2)`` of the four children of each triangle6 ``(m, 6, 2)``, in
     order (:func:`curvimesh.kernels.child_nodes`: ``p2_map(nodes, _CHILD_UV)``)."""
     out = np.empty((len(nodes), 4, 6, 2))
-    kernels.child_nodes(_child_shape(), np.ascontiguousarray(nodes, dtype=float), out)
+    kernels.child_nodes(child_shape(), np.ascontiguousarray(nodes, dtype=float), out)
     return out.reshape(-1, 6, 2)
 
 

@@ -81,12 +81,23 @@ from numpy.typing import NDArray
 from curvimesh import kernels
 from curvimesh.bezier import REFERENCE_NODES, VALID_RTOL, p2_shape_grad, valid_exact
 from curvimesh.freenode import shortest_parabola
-from curvimesh.geodesic import gauss_rule, offset_alpha, parabola_midnode
+from curvimesh.geodesic import (
+    LENGTH_MAX_SEGMENTS,
+    LENGTH_ORDER,
+    doubling_rules,
+    gauss_rule,
+    offset_alpha,
+    parabola_midnode,
+)
 from curvimesh.mesh import Mesh, cells_at_vertices
 from curvimesh.metric import MetricField
 from curvimesh.quality import (
+    AREA_MAX_LEVEL,
     COUNT_RTOL,
+    REMEASURE_MARGIN,
+    REPORT_RTOL,
     area_rule,
+    child_shape,
     edge_lengths,
     edge_lengths_fast,
     metric_areas,
@@ -735,17 +746,66 @@ def _best_move(
     """The best admissible position of v among ``cand`` (module docstring, ``rule``):
     v's new position, its incident edges' new middle nodes ``(j, 2)`` and lengths
     ``(j,)``, and the star's qualities ``(s,)``; None if there is none.
+
+    Each incident edge's shortest parabola is searched from each candidate; its
+    middle node is backtracked towards the straight one (:data:`BACKTRACK`) until the
+    star is valid; the four best moves by the rule's score are measured exactly
+    (lengths and areas to :data:`~curvimesh.quality.REPORT_RTOL`), the first that
+    keeps the rule is made. With a compiled metric, all but the searches in one call
+    (:func:`curvimesh.kernels.best_move`), otherwise in numpy
+    (:func:`_best_move_numpy`): the same arithmetic.
     """
     k, j = len(cand), len(star.edges)
     if k == 0:
         return None
-    mesh, pts, length = state.mesh, state.pts, state.length
+    pts = state.pts
     others = pts[star.others]
     a = np.repeat(cand, j, axis=0)
     b = np.tile(others, (k, 1))
     # the candidates' pairs seldom come again: searched and measured without the memo
     optimal = shortest_parabola(field, a, b, exact_length=False, remember=False, guided=True)
     optimal = optimal.mid.reshape(k, j, 2)
+    cm = field.kernel
+    if cm is None:
+        return _best_move_numpy(field, state, star, cand, others, optimal, rule)
+    mesh = state.mesh
+    s = len(star.tris)
+    mids, exact, q = np.empty((j, 2)), np.empty(j), np.empty(s)
+    t, w = gauss_rule(2, 5)
+    gu, gv = _node_gradients()
+    i = kernels.best_move(
+        cm.g, np.ascontiguousarray(cand, dtype=float), np.ascontiguousarray(others),
+        np.ascontiguousarray(optimal), pts[mesh.triangles[star.tris]],
+        np.ascontiguousarray(star.slots), state.length[mesh.tri_edges[star.tris]],
+        _backtrack(), t, w, gu, gv, VALID_RTOL, *area_rule(4), child_shape(),
+        *area_rule(8), *doubling_rules(LENGTH_ORDER, LENGTH_MAX_SEGMENTS), REPORT_RTOL,
+        AREA_MAX_LEVEL, rule.shortest, rule.longest, rule.q_min, rule.by_quality, rule.push,
+        state.improve_below + REMEASURE_MARGIN, mids, exact, q,
+    )  # fmt: skip
+    return None if i < 0 else (cand[i], mids, exact, q)
+
+
+@lru_cache(maxsize=1)
+def _backtrack() -> NDArray:
+    """:data:`BACKTRACK` as an array (cached; do not modify)."""
+    return np.array(BACKTRACK, dtype=float)
+
+
+def _best_move_numpy(
+    field: MetricField,
+    state: _State,
+    star: _Star,
+    cand: NDArray,
+    others: NDArray,
+    optimal: NDArray,
+    rule: _Rule,
+) -> tuple[NDArray, NDArray, NDArray, NDArray] | None:
+    """:func:`_best_move` after the searches (the shortest parabolas' middle nodes
+    ``optimal`` ``(k, j, 2)``), in numpy."""
+    k, j = len(cand), len(star.edges)
+    mesh, pts, length = state.mesh, state.pts, state.length
+    a = np.repeat(cand, j, axis=0)
+    b = np.tile(others, (k, 1))
     straight = 0.5 * (a + b).reshape(k, j, 2)
     base = pts[mesh.triangles[star.tris]]  # (s, 6, 2)
     inc = star.slots[:, 3:]  # (s, 3): incident edge k, or −2

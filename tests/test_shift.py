@@ -10,6 +10,7 @@ from scipy.spatial import Delaunay
 from curvimesh import adapt as pipeline
 from curvimesh import shift
 from curvimesh.bezier import valid_exact
+from curvimesh.freenode import shortest_parabola
 from curvimesh.geodesic import offset_alpha
 from curvimesh.mesh import Mesh, signed_areas, to_p2_straight
 from curvimesh.metric import load_metric, load_metric_text
@@ -329,6 +330,64 @@ def test_the_compiled_screen_picks_what_the_full_numpy_measure_picks():
                 skipped += int((ok_n & (worst_n > rule.q_min) & ~measured).sum())
     assert checked > 1000 and 0 < valid < checked
     assert picked > 200 and skipped > 400
+
+
+def test_the_compiled_best_move_is_the_numpy_one_bit_for_bit():
+    # the stars of the three toys' triangles below 0.8 (without shifts, at 1,617
+    # vertices, where the quality moves cross the rings' kinks): each vertex's
+    # candidates of a quality move under the plain rule and with each incident edge
+    # pushed, and of a long-edge move along each incident edge, with positions far
+    # out (inverted stars, edges out of bounds). The compiled move (one kernel after
+    # the searches) and the numpy one pick the same candidate, or none, with the same
+    # middle nodes, exact lengths and qualities
+    fld = load_metric(METRICS / "three_toys.yaml")
+    opt = pipeline.AdaptOptions(shift=False, remove=False, repeat=False, bend=False)
+    mesh = pipeline.adapt(fld, opt).mesh
+    p = np.array(mesh.points)
+    ln = lengths(fld, mesh)
+    q = quality_from(metric_areas(fld, p[mesh.triangles]), ln[mesh.tri_edges])
+    state = shift._State(mesh, shift._Incidence.of(mesh), p, ln, q, mesh.boundary_vertices)
+    tries = moved = 0
+    for t in np.flatnonzero(q < 0.8)[:8]:
+        for v in mesh.triangles[t, :3]:
+            if state.fixed[v]:
+                continue
+            star = state.star(int(v))
+            others = p[star.others]
+            away = p[v] - others.mean(axis=0)
+            far = p[v] + np.outer([1.5, -1.0], away)
+            worst_now = float(q[star.tris].min())
+            moves = [
+                (
+                    shift._Rule.for_quality(ln[star.edges], worst_now, (0.7, 1.4), push=push),
+                    shift._candidates(fld, p[v], 2.0 * away, shift.QUALITY_ANGLES),
+                )
+                for push in range(-1, len(star.edges))
+            ]
+            old = ln[star.edges]
+            moves += [
+                (
+                    shift._Rule(min(0.7, float(old.min())), float(old.max()), worst_now, False),
+                    shift._candidates(fld, p[v], others[e] - p[v]),
+                )
+                for e in range(len(star.edges))
+            ]
+            for rule, cand in moves:
+                cand = np.vstack([cand, far])
+                k, j = len(cand), len(others)
+                a, b = np.repeat(cand, j, axis=0), np.tile(others, (k, 1))
+                optimal = shortest_parabola(
+                    fld, a, b, exact_length=False, remember=False, guided=True
+                ).mid.reshape(k, j, 2)
+                got = shift._best_move(fld, state, star, int(v), cand, rule)
+                want = shift._best_move_numpy(fld, state, star, cand, others, optimal, rule)
+                assert (got is None) == (want is None)
+                if got is not None:
+                    for x, y in zip(got, want, strict=True):
+                        np.testing.assert_array_equal(x, y)
+                    moved += 1
+                tries += 1
+    assert tries > 100 and 20 < moved < tries
 
 
 def test_candidates_are_the_turned_steps_along_the_chord():
