@@ -228,60 +228,6 @@ def _insert_round(
     flat = pos.reshape(-1, 2)
     pos_ok &= _far_from_vertices(field, mesh, flat, min_dist).reshape(ns, npos)
 
-    # spokes p – targets: optimal nodes, then the backtracked nodes and lengths per level
-    p_rep = np.repeat(flat, 8, axis=0)
-    t_pts = pts[np.repeat(targets[:, None, :], npos, axis=1).ravel()]
-    par = shortest_parabola(field, p_rep, t_pts, exact_length=False)
-    straight = 0.5 * (p_rep + t_pts)
-    nl = len(BACKTRACK)
-    s_mid = straight[:, None] + np.array(BACKTRACK)[None, :, None] * (par.mid - straight)[:, None]
-    s_len = edge_lengths_fast(
-        field,
-        np.repeat(p_rep, nl, axis=0),
-        np.repeat(t_pts, nl, axis=0),
-        s_mid.reshape(-1, 2),
-    )
-    s_mid = s_mid.reshape(ns, npos, 8, nl, 2)
-    s_len = s_len.reshape(ns, npos, 8, nl)
-
-    # the 12 star triangles at every level: (s, P, 12, L, 6, 2)
-    shape = (ns, npos, 12, nl)
-    tri_nodes = np.empty((*shape, 6, 2))
-    tri_nodes[..., 0, :] = pos[:, :, None, None]
-    tri_nodes[..., 1, :] = pts[targets[:, _FROM]][:, None, :, None]
-    tri_nodes[..., 2, :] = pts[targets[:, _TO]][:, None, :, None]
-    tri_nodes[..., 3, :] = s_mid[:, :, _FROM]
-    tri_nodes[..., 4, :] = pts[bnode][:, None, :, None]
-    tri_nodes[..., 5, :] = s_mid[:, :, _TO]
-    tn = tri_nodes.reshape(-1, 6, 2)
-    valid = valid_exact(tn).reshape(shape)
-    lens = np.stack(
-        [
-            s_len[:, :, _FROM],
-            np.broadcast_to(blen[:, None, :, None], shape),
-            s_len[:, :, _TO],
-        ],
-        axis=-1,
-    )
-    q = quality_from(metric_areas(field, tn), lens.reshape(-1, 3)).reshape(shape)
-    q = np.where(valid, q, -np.inf)
-
-    # the 16 cavities: first level where all their triangles are valid
-    uses = _USES[None, None, :, :, None]  # (1, 1, 16, 12, 1)
-    ok_lvl = (valid[:, :, None] | ~uses).all(axis=3)  # (s, P, 16, L)
-    q_cav = np.where(uses, q[:, :, None], np.inf).min(axis=3)
-    tg = _TARGETS[None, None, :, :, None]
-    sp = s_len[:, :, None]  # (s, P, 1, 8, L)
-    sp_min = np.where(tg, sp, np.inf).min(axis=3)
-    sp_max = np.where(tg, sp, -np.inf).max(axis=3)
-    n_long_sp = (tg & (sp > max_length)).sum(axis=3)
-    level = np.argmax(ok_lvl, axis=3)  # (s, P, 16)
-    any_ok = ok_lvl.any(axis=3)
-
-    def at_level(v: NDArray) -> NDArray:
-        return np.take_along_axis(v, level[..., None], axis=3)[..., 0]
-
-    q_best, sp_min, sp_max, n_long_sp = map(at_level, (q_cav, sp_min, sp_max, n_long_sp))
     # admissible cavities: neighbours exist, loop vertices distinct
     bits = (np.arange(16)[:, None] >> np.arange(4)) & 1 == 1  # (16, 4)
     cav_ok = ~(bits[None] & ~has[:, None]).any(axis=2)  # (s, 16)
@@ -290,6 +236,76 @@ def _insert_round(
     in_quad = (xv[:, :, None] == quad[:, None, :]).any(axis=2)  # (s, 4)
     dup = dup.any(axis=(2, 3)) | (bits[None] & in_quad[:, None]).any(axis=2)
     cav_ok &= ~dup
+    # Only the cavities that can be admissible are measured, each as far as it needs:
+    # its triangles' validity level by level up to its first valid level, then their
+    # qualities and its spokes' lengths at that level (the measures are row by row,
+    # so the figures of the cavities measured are those of measuring every level)
+    pending = cav_ok[:, None] & pos_ok[..., None]  # (s, P, 16)
+    nl = len(BACKTRACK)
+    shape = (ns, npos, 12, nl)
+
+    # spokes p – targets: optimal nodes, then the backtracked nodes per level
+    live = (pending[..., None] & _TARGETS).any(axis=2).reshape(-1)  # (s P 8,) spokes used
+    p_rep = np.repeat(flat, 8, axis=0)[live]
+    t_pts = pts[np.repeat(targets[:, None, :], npos, axis=1).ravel()][live]
+    par = shortest_parabola(field, p_rep, t_pts, exact_length=False)
+    straight = 0.5 * (p_rep + t_pts)
+    s_mid = np.full((ns * npos * 8, nl, 2), np.nan)
+    s_mid[live] = (
+        straight[:, None] + np.array(BACKTRACK)[None, :, None] * (par.mid - straight)[:, None]
+    )
+    s_mid = s_mid.reshape(ns, npos, 8, nl, 2)
+
+    # the 12 star triangles at every level: (s, P, 12, L, 6, 2)
+    tri_nodes = np.empty((*shape, 6, 2))
+    tri_nodes[..., 0, :] = pos[:, :, None, None]
+    tri_nodes[..., 1, :] = pts[targets[:, _FROM]][:, None, :, None]
+    tri_nodes[..., 2, :] = pts[targets[:, _TO]][:, None, :, None]
+    tri_nodes[..., 3, :] = s_mid[:, :, _FROM]
+    tri_nodes[..., 4, :] = pts[bnode][:, None, :, None]
+    tri_nodes[..., 5, :] = s_mid[:, :, _TO]
+
+    # the 16 cavities: first level where all their triangles are valid
+    valid = np.zeros(shape, dtype=bool)
+    ok_lvl = np.zeros((ns, npos, 16, nl), dtype=bool)
+    for lv in range(nl):
+        need = np.nonzero((pending[..., None] & _USES).any(axis=2))  # (s, P, 12) used
+        valid[(*need, lv)] = valid_exact(tri_nodes[(*need, lv)])
+        ok_lvl[..., lv] = pending & (valid[:, :, None, :, lv] | ~_USES).all(axis=3)
+        pending &= ~ok_lvl[..., lv]
+    level = np.argmax(ok_lvl, axis=3)  # (s, P, 16)
+    any_ok = ok_lvl.any(axis=3)
+    # at each valid cavity's level: its spokes' lengths, its triangles' qualities
+    at = (level[..., None] == np.arange(nl)) & any_ok[..., None]  # (s, P, 16, L)
+    need = np.nonzero((at[..., None, :] & _TARGETS[..., None]).any(axis=2))  # (s, P, 8, L)
+    s_len = np.full((ns, npos, 8, nl), np.nan)
+    s_len[need] = edge_lengths_fast(
+        field, pos[need[:2]], pts[targets[need[0], need[2]]], s_mid[need]
+    )
+    need = np.nonzero((at[..., None, :] & _USES[..., None]).any(axis=2))  # (s, P, 12, L)
+    lens = np.stack(
+        [
+            s_len[:, :, _FROM],
+            np.broadcast_to(blen[:, None, :, None], shape),
+            s_len[:, :, _TO],
+        ],
+        axis=-1,
+    )
+    q = np.full(shape, np.nan)
+    q[need] = quality_from(metric_areas(field, tri_nodes[need]), lens[need])
+    q = np.where(valid, q, -np.inf)
+    uses = _USES[None, None, :, :, None]  # (1, 1, 16, 12, 1)
+    q_cav = np.where(uses, q[:, :, None], np.inf).min(axis=3)
+    tg = _TARGETS[None, None, :, :, None]
+    sp = s_len[:, :, None]  # (s, P, 1, 8, L)
+    sp_min = np.where(tg, sp, np.inf).min(axis=3)
+    sp_max = np.where(tg, sp, -np.inf).max(axis=3)
+    n_long_sp = (tg & (sp > max_length)).sum(axis=3)
+
+    def at_level(v: NDArray) -> NDArray:
+        return np.take_along_axis(v, level[..., None], axis=3)[..., 0]
+
+    q_best, sp_min, sp_max, n_long_sp = map(at_level, (q_cav, sp_min, sp_max, n_long_sp))
     long_left = (~bits[None] & (length[oedge] > max_length)[:, None]).sum(axis=2)  # (s, 16)
     seed_len = length[seeds]
     admissible = (
