@@ -271,6 +271,28 @@ def test_a_try_that_found_nothing_is_not_made_again(monkeypatch):
     assert len(calls) > with_memo
 
 
+def unshifted(name: str) -> tuple:
+    """The example's mesh adapted without shifts and removals, with its points, edge
+    lengths, qualities and shift state: (field, mesh, points, lengths, qualities, state)."""
+    fld = load_metric(METRICS / f"{name}.yaml")
+    opt = pipeline.AdaptOptions(shift=False, remove=False, repeat=False, bend=False)
+    mesh = pipeline.adapt(fld, opt).mesh
+    p = np.array(mesh.points)
+    ln = lengths(fld, mesh)
+    q = quality_from(metric_areas(fld, p[mesh.triangles]), ln[mesh.tri_edges])
+    state = shift._State(mesh, shift._Incidence.of(mesh), p, ln, q, mesh.boundary_vertices)
+    return fld, mesh, p, ln, q, state
+
+
+def low_quality_stars(state: shift._State, q: np.ndarray, triangles: int):
+    """(v, v's star) for the free corners v of the first ``triangles`` triangles of
+    quality below 0.8."""
+    for t in np.flatnonzero(q < 0.8)[:triangles]:
+        for v in state.mesh.triangles[t, :3]:
+            if not state.fixed[v]:
+                yield int(v), state.star(int(v))
+
+
 def test_the_compiled_screen_picks_what_the_full_numpy_measure_picks():
     # the stars of the toy mesh's triangles below 0.8 (without shifts), each vertex's
     # candidates of a quality move and positions far out (inverted stars, edges out of
@@ -279,55 +301,43 @@ def test_the_compiled_screen_picks_what_the_full_numpy_measure_picks():
     # worst qualities where the compiled screen measured them, and the same SCREEN
     # candidates picked; the compiled screen leaves out candidates that the numpy one
     # measured above the rule's quality (beaten by SCREEN before them)
-    fld = load_metric(METRICS / "toy.yaml")
-    opt = pipeline.AdaptOptions(shift=False, remove=False, repeat=False, bend=False)
-    mesh = pipeline.adapt(fld, opt).mesh
-    p = np.array(mesh.points)
-    ln = lengths(fld, mesh)
-    q = quality_from(metric_areas(fld, p[mesh.triangles]), ln[mesh.tri_edges])
-    state = shift._State(mesh, shift._Incidence.of(mesh), p, ln, q, mesh.boundary_vertices)
+    fld, mesh, p, ln, q, state = unshifted("toy")
     checked = valid = picked = skipped = 0
-    for t in np.flatnonzero(q < 0.8)[:12]:
-        for v in mesh.triangles[t, :3]:
-            if state.fixed[v]:
-                continue
-            star = state.star(int(v))
-            others = p[star.others]
-            here = np.broadcast_to(p[v], others.shape)
-            alpha = offset_alpha(here, others, p[mesh.edge_mid[star.edges]] - 0.5 * (here + others))
-            away = p[v] - others.mean(axis=0)
-            cand = np.vstack(
-                [
-                    shift._candidates(fld, p[v], 2.0 * away, shift.QUALITY_ANGLES),
-                    p[v] + np.outer([1.5, 3.0, -1.0], away),
-                ]
+    for v, star in low_quality_stars(state, q, 12):
+        others = p[star.others]
+        here = np.broadcast_to(p[v], others.shape)
+        alpha = offset_alpha(here, others, p[mesh.edge_mid[star.edges]] - 0.5 * (here + others))
+        away = p[v] - others.mean(axis=0)
+        cand = np.vstack(
+            [
+                shift._candidates(fld, p[v], 2.0 * away, shift.QUALITY_ANGLES),
+                p[v] + np.outer([1.5, 3.0, -1.0], away),
+            ]
+        )
+        worst_now = float(q[star.tris].min())
+        for push in range(-1, len(star.edges)):
+            rule = shift._Rule.for_quality(ln[star.edges], worst_now, (0.7, 1.4), push=push)
+            ok_n, len_n, worst_n = shift._screen_numpy(fld, state, star, cand, others, alpha, rule)
+            ok_c, len_c, worst_c = shift._screen_compiled(
+                fld, state, star, cand, others, alpha, rule
             )
-            worst_now = float(q[star.tris].min())
-            for push in range(-1, len(star.edges)):
-                rule = shift._Rule.for_quality(ln[star.edges], worst_now, (0.7, 1.4), push=push)
-                ok_n, len_n, worst_n = shift._screen_numpy(
-                    fld, state, star, cand, others, alpha, rule
-                )
-                ok_c, len_c, worst_c = shift._screen_compiled(
-                    fld, state, star, cand, others, alpha, rule
-                )
-                np.testing.assert_array_equal(ok_c, ok_n)
-                np.testing.assert_array_equal(len_c[ok_c], len_n[ok_n])
-                measured = np.isfinite(worst_c)
-                assert not (measured & ~ok_c).any()
-                np.testing.assert_allclose(worst_c[measured], worst_n[measured], rtol=1e-13)
-                # the picks of the full measure, as _screened makes them
-                rows = np.flatnonzero(ok_n & (worst_n > rule.q_min))
-                best = rows[np.lexsort((rows, rule.scores(len_n[rows], worst_n[rows])))]
-                best = best[: shift.SCREEN]
-                np.testing.assert_array_equal(
-                    shift._screened(fld, state, star, int(v), cand, rule), cand[best]
-                )
-                assert measured[best].all()
-                checked += len(cand)
-                valid += int(ok_n.sum())
-                picked += len(best)
-                skipped += int((ok_n & (worst_n > rule.q_min) & ~measured).sum())
+            np.testing.assert_array_equal(ok_c, ok_n)
+            np.testing.assert_array_equal(len_c[ok_c], len_n[ok_n])
+            measured = np.isfinite(worst_c)
+            assert not (measured & ~ok_c).any()
+            np.testing.assert_allclose(worst_c[measured], worst_n[measured], rtol=1e-13)
+            # the picks of the full measure, as _screened makes them
+            rows = np.flatnonzero(ok_n & (worst_n > rule.q_min))
+            best = rows[np.lexsort((rows, rule.scores(len_n[rows], worst_n[rows])))]
+            best = best[: shift.SCREEN]
+            np.testing.assert_array_equal(
+                shift._screened(fld, state, star, int(v), cand, rule), cand[best]
+            )
+            assert measured[best].all()
+            checked += len(cand)
+            valid += int(ok_n.sum())
+            picked += len(best)
+            skipped += int((ok_n & (worst_n > rule.q_min) & ~measured).sum())
     assert checked > 1000 and 0 < valid < checked
     assert picked > 200 and skipped > 400
 
@@ -340,53 +350,43 @@ def test_the_compiled_best_move_is_the_numpy_one_bit_for_bit():
     # out (inverted stars, edges out of bounds). The compiled move (one kernel after
     # the searches) and the numpy one pick the same candidate, or none, with the same
     # middle nodes, exact lengths and qualities
-    fld = load_metric(METRICS / "three_toys.yaml")
-    opt = pipeline.AdaptOptions(shift=False, remove=False, repeat=False, bend=False)
-    mesh = pipeline.adapt(fld, opt).mesh
-    p = np.array(mesh.points)
-    ln = lengths(fld, mesh)
-    q = quality_from(metric_areas(fld, p[mesh.triangles]), ln[mesh.tri_edges])
-    state = shift._State(mesh, shift._Incidence.of(mesh), p, ln, q, mesh.boundary_vertices)
+    fld, _, p, ln, q, state = unshifted("three_toys")
     tries = moved = 0
-    for t in np.flatnonzero(q < 0.8)[:8]:
-        for v in mesh.triangles[t, :3]:
-            if state.fixed[v]:
-                continue
-            star = state.star(int(v))
-            others = p[star.others]
-            away = p[v] - others.mean(axis=0)
-            far = p[v] + np.outer([1.5, -1.0], away)
-            worst_now = float(q[star.tris].min())
-            moves = [
-                (
-                    shift._Rule.for_quality(ln[star.edges], worst_now, (0.7, 1.4), push=push),
-                    shift._candidates(fld, p[v], 2.0 * away, shift.QUALITY_ANGLES),
-                )
-                for push in range(-1, len(star.edges))
-            ]
-            old = ln[star.edges]
-            moves += [
-                (
-                    shift._Rule(min(0.7, float(old.min())), float(old.max()), worst_now, False),
-                    shift._candidates(fld, p[v], others[e] - p[v]),
-                )
-                for e in range(len(star.edges))
-            ]
-            for rule, cand in moves:
-                cand = np.vstack([cand, far])
-                k, j = len(cand), len(others)
-                a, b = np.repeat(cand, j, axis=0), np.tile(others, (k, 1))
-                optimal = shortest_parabola(
-                    fld, a, b, exact_length=False, remember=False, guided=True
-                ).mid.reshape(k, j, 2)
-                got = shift._best_move(fld, state, star, int(v), cand, rule)
-                want = shift._best_move_numpy(fld, state, star, cand, others, optimal, rule)
-                assert (got is None) == (want is None)
-                if got is not None:
-                    for x, y in zip(got, want, strict=True):
-                        np.testing.assert_array_equal(x, y)
-                    moved += 1
-                tries += 1
+    for v, star in low_quality_stars(state, q, 8):
+        others = p[star.others]
+        away = p[v] - others.mean(axis=0)
+        far = p[v] + np.outer([1.5, -1.0], away)
+        worst_now = float(q[star.tris].min())
+        moves = [
+            (
+                shift._Rule.for_quality(ln[star.edges], worst_now, (0.7, 1.4), push=push),
+                shift._candidates(fld, p[v], 2.0 * away, shift.QUALITY_ANGLES),
+            )
+            for push in range(-1, len(star.edges))
+        ]
+        old = ln[star.edges]
+        moves += [
+            (
+                shift._Rule(min(0.7, float(old.min())), float(old.max()), worst_now, False),
+                shift._candidates(fld, p[v], others[e] - p[v]),
+            )
+            for e in range(len(star.edges))
+        ]
+        for rule, cand in moves:
+            cand = np.vstack([cand, far])
+            k, j = len(cand), len(others)
+            a, b = np.repeat(cand, j, axis=0), np.tile(others, (k, 1))
+            optimal = shortest_parabola(
+                fld, a, b, exact_length=False, remember=False, guided=True
+            ).mid.reshape(k, j, 2)
+            got = shift._best_move(fld, state, star, int(v), cand, rule)
+            want = shift._best_move_numpy(fld, state, star, cand, others, optimal, rule)
+            assert (got is None) == (want is None)
+            if got is not None:
+                for x, y in zip(got, want, strict=True):
+                    np.testing.assert_array_equal(x, y)
+                moved += 1
+            tries += 1
     assert tries > 100 and 20 < moved < tries
 
 
