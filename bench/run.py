@@ -665,7 +665,7 @@ def write_markdown(ctx: dict, all_results: dict, throughput: dict, profiles: dic
         "",
         "Checks before timing: " + "; ".join(ctx["checks"]) + ".",
         "",
-        "![time against vertices](results.png)",
+        f"![time against vertices]({ctx['plot']})",
         "",
     ]
     for name, tools in all_results.items():
@@ -872,6 +872,7 @@ def main(argv: list[str] | None = None) -> int:
     ctx["wall"] = time.perf_counter() - t0
     ctx["load_after"] = " ".join(f"{v:.1f}" for v in os.getloadavg())
     args.out.parent.mkdir(parents=True, exist_ok=True)
+    ctx["plot"] = args.out.with_suffix(".png").name  # beside the markdown
     args.out.write_text(write_markdown(ctx, all_results, throughput, profiles))
     make_plot(all_results, args.out.with_suffix(".png"))
     print(summary(all_results, throughput))
