@@ -412,14 +412,29 @@ class Parabolas:
     length: NDArray
 
 
+#: :func:`shortest_parabola`'s defaults: α scanned at ``SEARCH_SCAN`` values in
+#: ±``SEARCH_ALPHA_MAX``, refined to ``SEARCH_TOL`` in at most ``SEARCH_MAX_ITER`` steps.
+SEARCH_ALPHA_MAX = 0.5
+SEARCH_SCAN = 11
+SEARCH_TOL = 1e-4
+SEARCH_MAX_ITER = 60
+
+
+@lru_cache(maxsize=8)
+def search_grid(alpha_max: float, scan: int) -> NDArray:
+    """The α the searches scan: ``scan`` values evenly in ±``alpha_max`` (cached; do not
+    modify)."""
+    return np.linspace(-alpha_max, alpha_max, scan)
+
+
 def shortest_parabola(
     field: MetricField,
     x0: NDArray,
     x1: NDArray,
     *,
-    alpha_max: float = 0.5,
-    scan: int = 11,
-    alpha_tol: float = 1e-4,
+    alpha_max: float = SEARCH_ALPHA_MAX,
+    scan: int = SEARCH_SCAN,
+    alpha_tol: float = SEARCH_TOL,
     segments: int = 2,
     order: int = 5,
     exact_length: bool = True,
@@ -460,7 +475,7 @@ def shortest_parabola(
     x1 = np.asarray(x1, dtype=float).reshape(-1, 2)
     nrm = bisector_normal(x0, x1)
     mid0 = 0.5 * (x0 + x1)
-    grid = np.linspace(-alpha_max, alpha_max, scan)
+    grid = search_grid(alpha_max, scan)
     if start is not None:
         if remember:
             raise ValueError("shortest_parabola: start needs remember=False")
@@ -509,15 +524,17 @@ def _search_alpha(field, x0, x1, grid, alpha_tol, segments, order, start=None, g
         if start is not None:
             (s,) = _rows(start)
             kernels.shortest_parabolas_near(
-                cm.g, a, b, s, grid, t, w, alpha_tol, 60, alpha, f_alpha
+                cm.g, a, b, s, grid, t, w, alpha_tol, SEARCH_MAX_ITER, alpha, f_alpha
             )
         elif guess is not None:
             (s,) = _rows(guess)
             kernels.shortest_parabolas_guided(
-                cm.g, a, b, s, grid, t, w, alpha_tol, 60, alpha, f_alpha
+                cm.g, a, b, s, grid, t, w, alpha_tol, SEARCH_MAX_ITER, alpha, f_alpha
             )
         else:
-            kernels.shortest_parabolas(cm.g, a, b, grid, t, w, alpha_tol, 60, alpha, f_alpha)
+            kernels.shortest_parabolas(
+                cm.g, a, b, grid, t, w, alpha_tol, SEARCH_MAX_ITER, alpha, f_alpha
+            )
         return alpha, f_alpha
     n = len(x0)
     nrm = bisector_normal(x0, x1)

@@ -2416,16 +2416,25 @@ def _lengths_ok(lens, shortest, longest, by_quality):
 
 @njit(**_JIT)
 def best_move(
-    fn, cand, others, optimal, base, slots, lens0, backtrack, t, w, gu, gv, valid_rtol,
-    s4, du4, dv4, w4, child, s8, du8, dv8, w8, ts, ws, starts, rtol, max_level, shortest,
-    longest, q_min, by_quality, push, remeasure_below, out_mid, out_len, out_q,
+    fn, fd, cand, others, search, grid, tol, max_iter, optimal, base, slots, lens0,
+    backtrack, t, w, gu, gv, valid_rtol, s4, du4, dv4, w4, child, s8, du8, dv8, w8, ts, ws,
+    starts, rtol, max_level, shortest, longest, q_min, by_quality, push, remeasure_below,
+    out_mid, out_len, out_q,
 ):  # fmt: skip
-    """:func:`curvimesh.shift._best_move` after its searches: the best admissible move of
-    a star's vertex to one of ``cand`` ``(k, 2)``, each incident edge (other ends
-    ``others`` ``(j, 2)``) through a middle node between the straight one and its
-    shortest parabola's ``optimal`` ``(k, j, 2)``; the candidate's index (its middle
-    nodes into ``out_mid`` ``(j, 2)``, its exact lengths into ``out_len`` ``(j,)`` and
-    its star's qualities into ``out_q`` ``(s,)``), or −1.
+    """:func:`curvimesh.shift._best_move`: the best admissible move of a star's vertex to
+    one of ``cand`` ``(k, 2)``, each incident edge (other ends ``others`` ``(j, 2)``)
+    through a middle node between the straight one and its shortest parabola's
+    ``optimal`` ``(k, j, 2)``; the candidate's index (its middle nodes into ``out_mid``
+    ``(j, 2)``, its exact lengths into ``out_len`` ``(j,)`` and its star's qualities into
+    ``out_q`` ``(s,)``), or −1.
+
+    With ``search``, the shortest parabolas are searched here first, into ``optimal``:
+    each from the geodesic's bend at the chord's middle (:func:`_acceleration` of the
+    metric with its derivatives ``fd``, as :func:`curvimesh.geodesic.geodesic_alpha`),
+    kept where no value of the coarse scan of ``grid`` is shorter
+    (:func:`_search_guided`, tolerance ``tol``, ``max_iter`` steps, rule ``t``, ``w``):
+    :func:`curvimesh.geodesic.shortest_parabola`'s guided search, row by row on this
+    thread (the caller searches the moves of many rows on all threads).
 
     Star as :func:`screen_moves` takes it (``base``, ``slots``, ``lens0``). For each
     fraction of ``backtrack`` in turn, the candidates not yet valid are tried with
@@ -2450,6 +2459,17 @@ def best_move(
     todo = np.ones(k, dtype=np.bool_)
     level = np.full(k, -1, dtype=np.int64)
     score = np.empty(k)
+    for c in range(k if search else 0):
+        ax, ay = cand[c, 0], cand[c, 1]
+        for e in range(j):
+            bx, by = others[e, 0], others[e, 1]
+            dx, dy = bx - ax, by - ay
+            acc_x, acc_y = _acceleration(fd, 0.5 * (ax + bx), 0.5 * (ay + by), dx, dy)
+            ox, oy = -0.125 * acc_x, -0.125 * acc_y
+            guess = (ox * dy + oy * (-dx)) / (dx * dx + dy * dy)
+            alpha = _search_guided(fn, ax, ay, bx, by, guess, grid, t, w, tol, max_iter)[0]
+            optimal[c, e, 0] = 0.5 * (ax + bx) + alpha * dy
+            optimal[c, e, 1] = 0.5 * (ay + by) + alpha * (-dx)
     for lv in range(backtrack.shape[0]):
         frac = backtrack[lv]
         for c in range(k):

@@ -84,10 +84,15 @@ from curvimesh.freenode import shortest_parabola
 from curvimesh.geodesic import (
     LENGTH_MAX_SEGMENTS,
     LENGTH_ORDER,
+    SEARCH_ALPHA_MAX,
+    SEARCH_MAX_ITER,
+    SEARCH_SCAN,
+    SEARCH_TOL,
     doubling_rules,
     gauss_rule,
     offset_alpha,
     parabola_midnode,
+    search_grid,
 )
 from curvimesh.mesh import Mesh, cells_at_vertices
 from curvimesh.metric import MetricField
@@ -760,12 +765,16 @@ def _best_move(
         return None
     pts = state.pts
     others = pts[star.others]
-    a = np.repeat(cand, j, axis=0)
-    b = np.tile(others, (k, 1))
-    # the candidates' pairs seldom come again: searched and measured without the memo
-    optimal = shortest_parabola(field, a, b, exact_length=False, remember=False, guided=True)
-    optimal = optimal.mid.reshape(k, j, 2)
     cm = field.kernel
+    # the candidates' pairs seldom come again: searched and measured without the memo;
+    # a compiled move of few rows searches them itself (with the same search)
+    search = cm is not None and k * j < kernels.SEARCH_PARALLEL_ROWS
+    if search:
+        optimal = np.empty((k, j, 2))
+    else:
+        a, b = np.repeat(cand, j, axis=0), np.tile(others, (k, 1))
+        optimal = shortest_parabola(field, a, b, exact_length=False, remember=False, guided=True)
+        optimal = optimal.mid.reshape(k, j, 2)
     if cm is None:
         return _best_move_numpy(field, state, star, cand, others, optimal, rule)
     mesh = state.mesh
@@ -774,8 +783,10 @@ def _best_move(
     t, w = gauss_rule(2, 5)
     gu, gv = _node_gradients()
     i = kernels.best_move(
-        cm.g, np.ascontiguousarray(cand, dtype=float), np.ascontiguousarray(others),
-        np.ascontiguousarray(optimal), pts[mesh.triangles[star.tris]],
+        cm.g, cm.gd, np.ascontiguousarray(cand, dtype=float), np.ascontiguousarray(others),
+        search, search_grid(SEARCH_ALPHA_MAX, SEARCH_SCAN), SEARCH_TOL, SEARCH_MAX_ITER,
+        np.ascontiguousarray(optimal),
+        pts[mesh.triangles[star.tris]],
         np.ascontiguousarray(star.slots), state.length[mesh.tri_edges[star.tris]],
         _backtrack(), t, w, gu, gv, VALID_RTOL, *area_rule(4), child_shape(),
         *area_rule(8), *doubling_rules(LENGTH_ORDER, LENGTH_MAX_SEGMENTS), REPORT_RTOL,
