@@ -756,9 +756,10 @@ def _best_move(
     middle node is backtracked towards the straight one (:data:`BACKTRACK`) until the
     star is valid; the four best moves by the rule's score are measured exactly
     (lengths and areas to :data:`~curvimesh.quality.REPORT_RTOL`), the first that
-    keeps the rule is made. With a compiled metric, all but the searches in one call
-    (:func:`curvimesh.kernels.best_move`), otherwise in numpy
-    (:func:`_best_move_numpy`): the same arithmetic.
+    keeps the rule is made. With a compiled metric, in one call
+    (:func:`curvimesh.kernels.best_move`; the searches too when they are fewer than
+    :data:`~curvimesh.kernels.SEARCH_PARALLEL_ROWS`, else on all threads before it),
+    otherwise in numpy (:func:`_best_move_numpy`): the same arithmetic.
     """
     k, j = len(cand), len(star.edges)
     if k == 0:
@@ -785,8 +786,7 @@ def _best_move(
     i = kernels.best_move(
         cm.g, cm.gd, np.ascontiguousarray(cand, dtype=float), np.ascontiguousarray(others),
         search, search_grid(SEARCH_ALPHA_MAX, SEARCH_SCAN), SEARCH_TOL, SEARCH_MAX_ITER,
-        np.ascontiguousarray(optimal),
-        pts[mesh.triangles[star.tris]],
+        np.ascontiguousarray(optimal), pts[mesh.triangles[star.tris]],
         np.ascontiguousarray(star.slots), state.length[mesh.tri_edges[star.tris]],
         _backtrack(), t, w, gu, gv, VALID_RTOL, *area_rule(4), child_shape(),
         *area_rule(8), *doubling_rules(LENGTH_ORDER, LENGTH_MAX_SEGMENTS), REPORT_RTOL,
