@@ -57,7 +57,7 @@ from curvimesh.bezier import p2_map, valid_exact
 from curvimesh.fill import metric_circumcentres
 from curvimesh.freenode import shortest_parabola
 from curvimesh.geodesic import parabola_points
-from curvimesh.mesh import Mesh, local_edge, rotate_triangles
+from curvimesh.mesh import Mesh, local_edge, rotate_triangles, sorted_find
 from curvimesh.metric import MetricField
 from curvimesh.quality import (
     COUNT_RTOL,
@@ -168,12 +168,43 @@ def insert_points(
 ) -> InsertResult:
     """Insert vertices at the long interior edges where allowed (module docstring)."""
     total = 0
+    length = edge_lengths(
+        field, np.asarray(mesh.points), mesh.edges, mesh.edge_mid, rtol=COUNT_RTOL
+    )
     for _ in range(rounds):
-        mesh, n = _insert_round(field, mesh, max_length, min_dist, min_quality)
+        mesh, n, length = _insert_round(field, mesh, length, max_length, min_dist, min_quality)
         total += n
         if n == 0:
             break
     return InsertResult(mesh, total)
+
+
+def _carried_lengths(
+    field: MetricField, old: Mesh, length: NDArray, mesh: Mesh, renum: NDArray
+) -> NDArray:
+    """:func:`~curvimesh.quality.edge_lengths` of ``mesh``'s edges (to ``COUNT_RTOL``) where
+    ``mesh`` is ``old`` (edge lengths ``length``) with some triangles replaced and its
+    nodes renumbered by ``renum`` (old id → new id, ascending, −1 for a node dropped).
+
+    An edge of ``old`` is in ``mesh`` when its middle node is (a node belongs to one
+    edge); its length comes along, the others' are measured (the lengths are functions
+    of the nodes' positions, which do not change)."""
+    mid = old.edge_mid
+    kept = renum[mid] >= 0
+    n = len(mesh.points)
+    # ascending, as old.edges: renum keeps the nodes' order
+    keys = renum[old.edges[kept, 0]] * n + renum[old.edges[kept, 1]]
+    new = mesh.edges[:, 0] * n + mesh.edges[:, 1]
+    pos, found = sorted_find(keys, new)
+    if len(keys):
+        found &= renum[mid[kept]][pos] == mesh.edge_mid
+    out = np.empty(len(new))
+    out[found] = length[kept][pos[found]]
+    fresh = ~found
+    out[fresh] = edge_lengths(
+        field, np.asarray(mesh.points), mesh.edges[fresh], mesh.edge_mid[fresh], rtol=COUNT_RTOL
+    )
+    return out
 
 
 def _far_from_vertices(field: MetricField, mesh: Mesh, x: NDArray, min_dist: float) -> NDArray:
@@ -186,16 +217,22 @@ def _far_from_vertices(field: MetricField, mesh: Mesh, x: NDArray, min_dist: flo
 
 
 def _insert_round(
-    field: MetricField, mesh: Mesh, max_length: float, min_dist: float, min_quality: float
-) -> tuple[Mesh, int]:
+    field: MetricField,
+    mesh: Mesh,
+    length: NDArray,
+    max_length: float,
+    min_dist: float,
+    min_quality: float,
+) -> tuple[Mesh, int, NDArray]:
+    """One round of insertions on ``mesh`` (edge lengths ``length`` to ``COUNT_RTOL``):
+    the new mesh, the vertices inserted and the new mesh's edge lengths."""
     pts = np.asarray(mesh.points)
     tris = np.asarray(mesh.triangles)
     et, tri_edges = mesh.edge_tris, mesh.tri_edges
-    length = edge_lengths(field, pts, mesh.edges, mesh.edge_mid, rtol=COUNT_RTOL)
     seeds = np.flatnonzero((length > max_length) & (et[:, 1] >= 0))
     ns = len(seeds)
     if ns == 0:
-        return mesh, 0
+        return mesh, 0, length
     t1, t2 = et[seeds, 0], et[seeds, 1]
     k1, k2 = local_edge(tri_edges, t1, seeds), local_edge(tri_edges, t2, seeds)
     r1 = rotate_triangles(tris[t1], k1)  # (a, b, c, n_ab, n_bc, n_ca)
@@ -320,7 +357,7 @@ def _insert_round(
     best = np.argmax(score.reshape(ns, -1), axis=1)
     good = np.flatnonzero(np.isfinite(score.reshape(ns, -1)[np.arange(ns), best]))
     if good.size == 0:
-        return mesh, 0
+        return mesh, 0, length
     bp, bm = best[good] // 16, best[good] % 16
     bl = level[good, bp, bm]
     newp = pos[good, bp]
@@ -372,5 +409,6 @@ def _insert_round(
     tris_new = np.concatenate([tris[keep], rows])
     used_nodes = np.zeros(len(new_pts), dtype=bool)
     used_nodes[tris_new.ravel()] = True
-    renum = np.cumsum(used_nodes) - 1
-    return Mesh(new_pts[used_nodes], renum[tris_new], mesh.box), int(k)
+    renum = np.where(used_nodes, np.cumsum(used_nodes) - 1, -1)
+    out = Mesh(new_pts[used_nodes], renum[tris_new], mesh.box)
+    return out, int(k), _carried_lengths(field, mesh, length, out, renum[: len(pts)])

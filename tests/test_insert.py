@@ -2,18 +2,23 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.integrate import quad
 from scipy.optimize import brentq
 
 from curvimesh import adapt as pipeline
+from curvimesh import insert
 from curvimesh.bezier import valid_exact
 from curvimesh.insert import insert_points, metric_fraction_params
 from curvimesh.mesh import Mesh, is_conforming
-from curvimesh.metric import load_metric_text
-from curvimesh.quality import edge_lengths
+from curvimesh.metric import load_metric, load_metric_text
+from curvimesh.quality import COUNT_RTOL, edge_lengths
 from curvimesh.triangulate import delaunay
+
+METRICS = Path(__file__).resolve().parents[1] / "metrics"
 
 ISO = """
 domain: {box: [[0, 0], [1, 1]]}
@@ -124,3 +129,18 @@ def test_insertion_never_comes_closer_than_min_dist():
     res = insert_points(fld, mesh, min_dist=1.1)
     assert res.inserted == 0
     assert isinstance(res.mesh, Mesh)
+
+
+def test_a_round_carries_the_lengths_of_the_edges_it_keeps():
+    # the three toys' unit mesh before any insertion: after one round, the edges that
+    # stayed bring their lengths along and the new ones are measured; bit for bit the
+    # lengths of the new mesh measured afresh
+    fld = load_metric(METRICS / "three_toys.yaml")
+    opt = pipeline.AdaptOptions(insert=False, shift=False, remove=False, repeat=False)
+    mesh = pipeline.adapt(fld, opt).mesh
+    length = edge_lengths(fld, mesh.points, mesh.edges, mesh.edge_mid, rtol=COUNT_RTOL)
+    out, k, carried = insert._insert_round(fld, mesh, length, 1.4, 0.7, 0.3)
+    assert k > 0
+    fresh = edge_lengths(fld, out.points, out.edges, out.edge_mid, rtol=COUNT_RTOL)
+    assert carried.tobytes() == fresh.tobytes()
+    assert len(out.edges) != len(mesh.edges)
