@@ -57,7 +57,7 @@ from curvimesh.bezier import p2_map, valid_exact
 from curvimesh.fill import metric_circumcentres
 from curvimesh.freenode import shortest_parabola
 from curvimesh.geodesic import parabola_points
-from curvimesh.mesh import Mesh, local_edge, rotate_triangles, sorted_find
+from curvimesh.mesh import Mesh, carried, local_edge, rotate_triangles
 from curvimesh.metric import MetricField
 from curvimesh.quality import (
     COUNT_RTOL,
@@ -187,20 +187,12 @@ def _carried_lengths(
     nodes renumbered by ``renum`` (old id → new id, ascending, −1 for a node dropped).
 
     An edge of ``old`` is in ``mesh`` when its middle node is (a node belongs to one
-    edge); its length comes along, the others' are measured (the lengths are functions
-    of the nodes' positions, which do not change)."""
-    mid = old.edge_mid
-    kept = renum[mid] >= 0
-    n = len(mesh.points)
-    # ascending, as old.edges: renum keeps the nodes' order
-    keys = renum[old.edges[kept, 0]] * n + renum[old.edges[kept, 1]]
-    new = mesh.edges[:, 0] * n + mesh.edges[:, 1]
-    pos, found = sorted_find(keys, new)
-    if len(keys):
-        found &= renum[mid[kept]][pos] == mesh.edge_mid
-    out = np.empty(len(new))
-    out[found] = length[kept][pos[found]]
-    fresh = ~found
+    edge); its length comes along (:func:`curvimesh.mesh.carried`: ``renum`` keeps the
+    edges' order), the others' are measured (the lengths are functions of the nodes'
+    positions, which do not change)."""
+    kept = renum[old.edge_mid] >= 0
+    out = carried(renum[old.edges[kept]], length[kept], mesh.edges, len(mesh.points))
+    fresh = np.isnan(out)
     out[fresh] = edge_lengths(
         field, np.asarray(mesh.points), mesh.edges[fresh], mesh.edge_mid[fresh], rtol=COUNT_RTOL
     )

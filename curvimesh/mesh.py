@@ -36,6 +36,7 @@ __all__ = [
     "Mesh",
     "apply_flips",
     "boundary_sides",
+    "carried",
     "cells_at_vertices",
     "flip_candidates",
     "independent_flips",
@@ -479,6 +480,20 @@ def sorted_find(sorted_keys: NDArray, keys: NDArray) -> tuple[NDArray, NDArray[n
         return np.zeros(len(keys), dtype=np.int64), np.zeros(len(keys), dtype=bool)
     pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
     return pos, sorted_keys[pos] == keys
+
+
+def carried(old_edges: NDArray, values: NDArray, edges: NDArray, n: int) -> NDArray:
+    """Values ``(E,)`` of ``edges`` ``(E, 2)`` from the same edges in ``old_edges``
+    ``(E', 2)`` (``values`` ``(E',)``; both sorted, as :attr:`Mesh.edges`, ``n`` points),
+    NaN for the new ones.
+
+    >>> carried(np.array([[0, 1], [1, 2]]), np.array([5.0, 7.0]), np.array([[0, 2], [1, 2]]), 3)
+    array([nan,  7.])
+    """
+    old_keys = old_edges[:, 0] * n + old_edges[:, 1]
+    keys = edges[:, 0] * n + edges[:, 1]
+    pos, found = sorted_find(old_keys, keys)
+    return np.where(found, values[pos], np.nan)
 
 
 def sorted_member(sorted_keys: NDArray, keys: NDArray) -> NDArray[np.bool_]:

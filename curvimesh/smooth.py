@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from curvimesh.freenode import shortest_parabola
 from curvimesh.geodesic import geodesic_alpha, parabola_length_rule, parabola_midnode
-from curvimesh.mesh import Mesh, signed_areas, sorted_find
+from curvimesh.mesh import Mesh, carried, signed_areas
 from curvimesh.metric import MetricField
 from curvimesh.sampling import too_close
 from curvimesh.triangulate import metric_delaunay
@@ -99,16 +99,6 @@ def tracked_lengths(
     length[other[use_bend]] = ln[len(edges) :][use_bend]
     kept[other[use_bend]] = bend[other[use_bend]]
     return length, kept
-
-
-def carried(old_edges: NDArray, values: NDArray, edges: NDArray, n: int) -> NDArray:
-    """Values ``(E,)`` of ``edges`` ``(E, 2)`` from the same edges in ``old_edges``
-    ``(E', 2)`` (``values`` ``(E',)``; both sorted, as :attr:`Mesh.edges`, ``n`` points),
-    NaN for the new ones."""
-    old_keys = old_edges[:, 0] * n + old_edges[:, 1]
-    keys = edges[:, 0] * n + edges[:, 1]
-    pos, found = sorted_find(old_keys, keys)
-    return np.where(found, values[pos], np.nan)
 
 
 def _undo_bad_moves(
