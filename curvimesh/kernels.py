@@ -1571,6 +1571,37 @@ def edge_triangles(tri_edges, n_edges):
     return out
 
 
+@njit(**_JIT)
+def neighbour_tables(tri_edges, edge_tris):
+    """``(nbr, side)``, each ``(m, 3)``: ``nbr[t, k]`` the triangle across side k of t
+    (the other of the edge's two triangles in ``edge_tris``, :func:`edge_triangles`),
+    or −1, and ``side[t, k]`` the first local side of ``nbr[t, k]`` whose neighbour is
+    t (0 where none is, −1 on the boundary).
+
+    The same arrays as ``np.where(pair[..., 0] == t, pair[..., 1], pair[..., 0])``
+    with ``pair = edge_tris[tri_edges]``, and ``np.where(nbr >= 0,
+    np.argmax(nbr[nbr] == t, axis=2), -1)``, in two passes instead of gathers of
+    ``(m, 3, 2)`` and ``(m, 3, 3)``.
+    """
+    m = tri_edges.shape[0]
+    nbr = np.empty((m, 3), dtype=np.int64)
+    for t in range(m):
+        for k in range(3):
+            e = tri_edges[t, k]
+            nbr[t, k] = edge_tris[e, 1] if edge_tris[e, 0] == t else edge_tris[e, 0]
+    side = np.full((m, 3), -1, dtype=np.int64)
+    for t in range(m):
+        for k in range(3):
+            o = nbr[t, k]
+            if o >= 0:
+                side[t, k] = 0
+                for j in range(3):
+                    if nbr[o, j] == t:
+                        side[t, k] = j
+                        break
+    return nbr, side
+
+
 # --------------------------------------------------------------------------- #
 # Lawson flips towards the Delaunay triangulation in the metric                #
 # --------------------------------------------------------------------------- #

@@ -202,11 +202,24 @@ class Mesh:
         return _readonly(lines.reshape(len(be), len(cols)))
 
     @cached_property
+    def _neighbour_tables(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        nbr, side = kernels.neighbour_tables(self.tri_edges, self.edge_tris)
+        return _readonly(nbr), _readonly(side)
+
+    @property
     def neighbours(self) -> NDArray[np.int64]:
         """``(m, 3)`` the triangle across local edge 01, 12, 20 of each triangle, or ``-1``."""
-        pair = self.edge_tris[self.tri_edges]  # (m, 3, 2)
-        own = np.arange(len(self.triangles))[:, None]
-        return _readonly(np.where(pair[..., 0] == own, pair[..., 1], pair[..., 0]))
+        return self._neighbour_tables[0]
+
+    @property
+    def neighbour_sides(self) -> NDArray[np.int64]:
+        """``(m, 3)`` the local edge of :attr:`neighbours` ``[t, k]`` that faces t, or ``-1``
+        on the boundary (on a non-conforming edge, 0 where the neighbour does not face t).
+
+        >>> Mesh([[0, 0], [1, 0], [1, 1], [0, 1]], [[0, 1, 2], [0, 2, 3]]).neighbour_sides.tolist()
+        [[-1, -1, 0], [2, -1, -1]]
+        """
+        return self._neighbour_tables[1]
 
 
 def signed_areas(points: ArrayLike, tris: ArrayLike) -> NDArray[np.float64]:

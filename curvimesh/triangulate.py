@@ -480,8 +480,7 @@ def _metric_delaunay_compiled(field, cm, mesh: Mesh, max_rounds: int) -> Mesh:
     pts = np.ascontiguousarray(mesh.points, dtype=float)
     corners = np.array(mesh.corners, dtype=np.int64)
     nbr = np.array(mesh.neighbours, dtype=np.int64)
-    t = np.repeat(np.arange(len(corners)), 3).reshape(-1, 3)
-    nbr_k = np.where(nbr >= 0, np.argmax(mesh.neighbours[nbr] == t[..., None], axis=2), -1)
+    nbr_k = np.array(mesh.neighbour_sides, dtype=np.int64)
     bad = np.zeros(2)
     if kernels.metric_delaunay_flips(cm.g, pts, corners, nbr, nbr_k, max_rounds, bad) < 0:
         field.tensor(bad[None])  # raises MetricError naming the point

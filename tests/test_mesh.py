@@ -21,7 +21,8 @@ from curvimesh.mesh import (
 
 
 def slow_topology(triangles):
-    """Edges, tri_edges, edge_tris, neighbours, boundary by plain loops over triangles."""
+    """Edges, tri_edges, edge_tris, neighbours, neighbour sides, boundary by plain loops
+    over triangles."""
     corners = [list(map(int, t[:3])) for t in triangles]
     holders = {}
     for t, c in enumerate(corners):
@@ -42,8 +43,13 @@ def slow_topology(triangles):
             others = [s for s in edge_tris[tri_edges[t][k]] if s != t]
             row.append(others[0] if others else -1)
         neighbours.append(row)
+    # the first side of the neighbour whose neighbour is t (0 if none: a non-conforming edge)
+    sides = [
+        [(neighbours[s].index(t) if t in neighbours[s] else 0) if s >= 0 else -1 for s in row]
+        for t, row in enumerate(neighbours)
+    ]
     boundary = [i for i, e in enumerate(edges) if len(holders[e]) == 1]
-    return edges, tri_edges, edge_tris, neighbours, boundary
+    return edges, tri_edges, edge_tris, neighbours, sides, boundary
 
 
 def slow_is_conforming(triangles):
@@ -77,11 +83,12 @@ def slow_is_conforming(triangles):
 
 
 def assert_topology_matches(mesh):
-    edges, tri_edges, edge_tris, neighbours, boundary = slow_topology(mesh.triangles)
+    edges, tri_edges, edge_tris, neighbours, sides, boundary = slow_topology(mesh.triangles)
     np.testing.assert_array_equal(mesh.edges, np.array(edges, dtype=np.int64).reshape(-1, 2))
     np.testing.assert_array_equal(mesh.tri_edges, np.array(tri_edges).reshape(-1, 3))
     np.testing.assert_array_equal(mesh.edge_tris, np.array(edge_tris).reshape(-1, 2))
     np.testing.assert_array_equal(mesh.neighbours, np.array(neighbours).reshape(-1, 3))
+    np.testing.assert_array_equal(mesh.neighbour_sides, np.array(sides).reshape(-1, 3))
     np.testing.assert_array_equal(mesh.boundary_edges, boundary)
 
 
@@ -155,6 +162,19 @@ def test_grid_neighbours_are_symmetric():
             if s >= 0:
                 assert t in nb[s]
                 assert mesh.tri_edges[t, k] in mesh.tri_edges[s]
+
+
+def test_neighbour_sides_face_back_across_the_same_edge():
+    mesh = delaunay_mesh(200, seed=4)
+    nb, side = mesh.neighbours, mesh.neighbour_sides
+    c = mesh.corners
+    t, k = np.nonzero(nb >= 0)
+    o, j = nb[t, k], side[t, k]
+    assert len(t) == 2 * (len(mesh.edges) - len(mesh.boundary_edges))
+    # side j of o runs along side k of t, the other way
+    assert (c[o, j] == c[t, (k + 1) % 3]).all() and (c[o, (j + 1) % 3] == c[t, k]).all()
+    assert (nb[o, j] == t).all() and (side[o, j] == k).all()
+    assert (side[nb < 0] == -1).all()
 
 
 def test_grid_boundary_sides_and_lines():
