@@ -1,10 +1,11 @@
 """Delaunay triangulation of the sampled points (paper section 4).
 
-The points are connected "isotropically" (Euclidean Delaunay, scipy's Qhull):
-the swap stage later aligns the mesh with the metric. Because the boundary
-vertices lie on the sides of the box and include its corners, the convex hull
-is the box and the triangulation covers the domain exactly, every boundary
-segment between consecutive boundary vertices being a hull edge.
+The points are connected "isotropically" (Euclidean Delaunay: Bowyer–Watson in
+compiled code, certified, else scipy's Qhull): the swap stage later aligns the
+mesh with the metric. Because the boundary vertices lie on the sides of the box
+and include its corners, the convex hull is the box and the triangulation covers
+the domain exactly, every boundary segment between consecutive boundary vertices
+being a hull edge.
 """
 
 from __future__ import annotations
@@ -77,6 +78,14 @@ def canonical_triangles(tris: NDArray) -> NDArray[np.int64]:
 def delaunay(points: NDArray, *, box: tuple[float, float, float, float] | None = None) -> Mesh:
     """Delaunay triangulation ``Mesh`` (P1, counter-clockwise) of points ``(n, 2)``.
 
+    The points are inserted one at a time in compiled code
+    (:func:`curvimesh.kernels.bowyer_watson`, in the order of :func:`_walk_order`)
+    and the result is certified the unique Delaunay triangulation (:func:`_certified`);
+    where it cannot be (co-circular points, a predicate not decided), Qhull
+    triangulates the points instead. At the 36,372 points sampled for the three
+    toys (s = 4.87): the insertion 29 ms and the certificate 24 ms, Qhull 180 –
+    200 ms.
+
     The triangles come in canonical order (:func:`canonical_triangles`): the mesh
     is a function of the set of triangles, whichever way it was computed (as
     :func:`delaunay_insert` does). Flat triangles (which Qhull can make of
@@ -86,6 +95,12 @@ def delaunay(points: NDArray, *, box: tuple[float, float, float, float] | None =
     pts = np.asarray(points, dtype=float)
     if len(pts) < 3:
         raise WorkError(f"cannot triangulate {len(pts)} points")
+    order = _walk_order(pts)
+    tris, status = kernels.bowyer_watson(np.ascontiguousarray(pts), order, kernels.ENCLOSING_SCALE)
+    if status == 0 and len(tris):
+        mesh = Mesh(pts, canonical_triangles(tris), box)
+        if _certified(mesh):
+            return mesh
     simplices = _qhull_triangles(pts)
     used = np.zeros(len(pts), dtype=bool)
     used[simplices.ravel()] = True
@@ -135,14 +150,14 @@ def strictly_delaunay(mesh: Mesh) -> NDArray[np.bool_]:
     return ok
 
 
-def _certified(new: Mesh, old: Mesh) -> bool:
-    """Whether ``new`` is the unique Delaunay triangulation of its points, knowing
-    that ``old`` is a triangulation.
+def _certified(new: Mesh, old: Mesh | None = None) -> bool:
+    """Whether ``new`` is the unique Delaunay triangulation of its points (knowing that
+    ``old``, if given, is a triangulation whose boundary it must keep).
 
     Checked: every triangle counter-clockwise beyond the error bound and not flat
     for :func:`delaunay` (area above 10 × its threshold); conforming (an edge in
     at most two triangles, in opposite directions); the same boundary edges as
-    ``old``, turning left or straight at every boundary vertex (a convex
+    ``old`` (if given), turning left or straight at every boundary vertex (a convex
     polygon, hence the convex hull of the points); the triangles' total area
     that of the polygon (each interior edge having a triangle on either side,
     the triangles then cover it exactly once); Euler's N − E + T = 1 with all N
@@ -162,7 +177,9 @@ def _certified(new: Mesh, old: Mesh) -> bool:
         return False
     if not is_conforming(new):
         return False
-    if not np.array_equal(new.edges[new.boundary_edges], old.edges[old.boundary_edges]):
+    if old is not None and not np.array_equal(
+        new.edges[new.boundary_edges], old.edges[old.boundary_edges]
+    ):
         return False
     lines = new.boundary_lines  # the domain on their left
     after = np.full(len(pts), -1, dtype=np.int64)
@@ -500,11 +517,11 @@ def metric_delaunay_of(
 
     Gap filling (:func:`curvimesh.fill.fill_gaps`) ends on the triangulation of
     its final points, which the triangulation stage asks for again: the second
-    call returns the same mesh without a second Qhull run and Lawson flips.
+    call returns the same mesh without a second triangulation and Lawson flips.
     Between its rounds the points only grow (new ones appended): when the last
     call's points are the first rows of ``points`` (same box), the Euclidean
     Delaunay triangulation is updated by :func:`delaunay_insert` instead of
-    Qhull on every point, falling back to :func:`delaunay` when the update
+    triangulating every point, falling back to :func:`delaunay` when the update
     cannot be certified. Both give the same array (the unique Delaunay
     triangulation in canonical order), so the result stays a pure function of
     the points.

@@ -1,5 +1,6 @@
-"""Euclidean Delaunay triangulations: canonical order, local insertion against Qhull
-from scratch, and the certificate's predicates against plain loops."""
+"""Euclidean Delaunay triangulations: canonical order, the compiled Bowyer–Watson and
+local insertion against Qhull from scratch, and the certificate's predicates against
+plain loops."""
 
 from __future__ import annotations
 
@@ -127,6 +128,50 @@ def test_insertion_into_a_lattice_is_not_certified():
     pts = lattice(8)
     new = np.random.default_rng(3).uniform(BOX[:2], BOX[2:], (5, 2))
     assert delaunay_insert(delaunay(pts), new) is None
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n=st.integers(0, 3000),
+    per_side=st.integers(0, 40),
+    edge=st.integers(0, 30),
+)
+def test_delaunay_is_qhull_bit_for_bit(seed, n, per_side, edge):
+    # the compiled insertion where it is certified, Qhull where not: the same array
+    rng = np.random.default_rng(seed)
+    pts = np.concatenate([cloud(rng, n, per_side), near_boundary(rng, edge)])
+    got = delaunay(pts, box=BOX)
+    np.testing.assert_array_equal(
+        got.triangles, canonical_triangles(triangulate._qhull_triangles(pts))
+    )
+    assert got.box == BOX
+
+
+def test_bowyer_watson_gives_the_delaunay_triangulation_of_a_cloud():
+    rng = np.random.default_rng(11)
+    pts = cloud(rng, 3000, 25)
+    tris, status = kernels.bowyer_watson(pts, np.arange(len(pts)), kernels.ENCLOSING_SCALE)
+    assert status == 0
+    mesh = Mesh(pts, canonical_triangles(tris))
+    assert triangulate._certified(mesh)  # so delaunay takes it, not Qhull's
+    # every circumcircle empty of the other points (plain loops on a sample)
+    for tri in mesh.corners[rng.permutation(len(tris))[:40]].tolist():
+        others = np.setdiff1d(np.arange(len(pts)), tri)
+        assert max(slow_in_circle(pts, *tri, pts[j]) for j in others) < 0
+    # Euler's formula with 4 + 100 hull points: T = 2N − h − 2
+    assert len(tris) == 2 * len(pts) - (4 + 4 * 25) - 2
+
+
+def test_bowyer_watson_leaves_a_lattice_to_qhull():
+    # co-circular cells: the insertion cannot pick Qhull's diagonals; not certified,
+    # delaunay falls back to Qhull's
+    pts = lattice(6)
+    tris, status = kernels.bowyer_watson(pts, np.arange(len(pts)), kernels.ENCLOSING_SCALE)
+    assert status != 0 or not triangulate._certified(Mesh(pts, canonical_triangles(tris)))
+    np.testing.assert_array_equal(
+        delaunay(pts).triangles, canonical_triangles(triangulate._qhull_triangles(pts))
+    )
 
 
 def test_insertion_refuses_points_outside_duplicated_or_on_circumcircles():
