@@ -95,12 +95,9 @@ def delaunay(points: NDArray, *, box: tuple[float, float, float, float] | None =
     pts = np.asarray(points, dtype=float)
     if len(pts) < 3:
         raise WorkError(f"cannot triangulate {len(pts)} points")
-    order = _walk_order(pts)
-    tris, status = kernels.bowyer_watson(np.ascontiguousarray(pts), order, kernels.ENCLOSING_SCALE)
-    if status == 0 and len(tris):
-        mesh = Mesh(pts, canonical_triangles(tris), box)
-        if _certified(mesh):
-            return mesh
+    tris = _certified_triangles(pts)
+    if tris is not None:
+        return Mesh(pts, tris, box)
     simplices = _qhull_triangles(pts)
     used = np.zeros(len(pts), dtype=bool)
     used[simplices.ravel()] = True
@@ -112,6 +109,19 @@ def delaunay(points: NDArray, *, box: tuple[float, float, float, float] | None =
             f"e.g. ({p[0]:.6g}, {p[1]:.6g}) (duplicate points?)"
         )
     return Mesh(pts, canonical_triangles(simplices), box)
+
+
+def _certified_triangles(pts: NDArray) -> NDArray[np.int64] | None:
+    """The Delaunay triangulation of ``pts`` ``(n, 2)`` in canonical order
+    (:func:`canonical_triangles`) by :func:`curvimesh.kernels.bowyer_watson` (in the
+    order of :func:`_walk_order`), when it is certified the unique one
+    (:func:`_certified`), hence Qhull's; else None."""
+    pts = np.ascontiguousarray(pts, dtype=float)
+    tris, status = kernels.bowyer_watson(pts, _walk_order(pts), kernels.ENCLOSING_SCALE)
+    if status != 0 or len(tris) == 0:
+        return None
+    tris = canonical_triangles(tris)
+    return tris if _certified(Mesh(pts, tris)) else None
 
 
 def _walk_order(q: NDArray) -> NDArray[np.int64]:
@@ -208,13 +218,14 @@ def delaunay_insert(mesh: Mesh, new: NDArray) -> Mesh | None:
     makes it). The conflict set C, the triangles whose circumcircle strictly
     holds a point of Q = ``new``, comes from walks and breadth-first searches
     (:func:`curvimesh.kernels.delaunay_conflicts`); S is Q and the corners of
-    C. Qhull triangulates S, and the triangles of DT(S) inside the region R
-    that C covers replace C. Why: the triangles outside C keep empty
-    circumcircles, so they stay in DT(P ∪ Q); R is bounded by their edges (and
-    hull edges), which are edges of DT(S) too (empty circumcircles, corners in
-    S); DT(P ∪ Q) tiles R with triangles whose corners are in S (a point of P in
-    R is a corner of C) and whose circumcircles are empty of all points, hence
-    of S: they are the triangles of DT(S) in R (points in general position).
+    C. S is triangulated (:func:`_certified_triangles`, else Qhull), and the
+    triangles of DT(S) inside the region R that C covers replace C. Why: the
+    triangles outside C keep empty circumcircles, so they stay in DT(P ∪ Q); R
+    is bounded by their edges (and hull edges), which are edges of DT(S) too
+    (empty circumcircles, corners in S); DT(P ∪ Q) tiles R with triangles whose
+    corners are in S (a point of P in R is a corner of C) and whose
+    circumcircles are empty of all points, hence of S: they are the triangles
+    of DT(S) in R (points in general position).
     These are found without geometry: from the triangle of DT(S) on the inner
     side of each boundary edge of R, through the edges of DT(S) that do not
     bound R (:func:`curvimesh.kernels.flood_fill`).
@@ -241,17 +252,19 @@ def delaunay_insert(mesh: Mesh, new: NDArray) -> Mesh | None:
     if kernels.delaunay_conflicts(pts_old, corners, nbr, qs, conflict) < 0:
         return None
     # an edge not strictly Delaunay (co-circular points) between two triangles that
-    # stay would fail the certificate: give up before Qhull
+    # stay would fail the certificate: give up before triangulating
     sides = np.empty((len(corners), 3), dtype=bool)
     if kernels.strict_delaunay_sides(pts_old, corners, nbr, sides):
         if (~sides & (nbr >= 0) & ~conflict[:, None] & ~conflict[nbr]).any():
             return None
     ids = np.concatenate([np.unique(corners[conflict]), n + np.arange(len(q))])
     pts = np.concatenate([pts_old, q])
-    try:
-        local = _qhull_triangles(pts[ids])
-    except WorkError:
-        return None
+    local = _certified_triangles(pts[ids])
+    if local is None:
+        try:
+            local = _qhull_triangles(pts[ids])
+        except WorkError:
+            return None
     # R's boundary: the sides of C's triangles towards a triangle outside C or none,
     # directed with R on their left, in S's numbering
     t, k = np.nonzero(~conflict[nbr] | (nbr < 0))
