@@ -3105,8 +3105,8 @@ ENCLOSING_SCALE = 1.0e5
 def bowyer_watson(xy, order, scale):
     """Triangles ``(m, 3)`` (counter-clockwise, ids into ``xy`` ``(n, 2)``) of the Delaunay
     triangulation of the points, inserted one at a time in the order ``order``
-    (Bowyer 1981, Watson 1981), and a status: 0, or −1 when a predicate could not be
-    decided (then the triangles are empty).
+    (Bowyer 1981, Watson 1981), and a status: 0, or negative when a predicate could
+    not be decided (then the triangles are empty).
 
     The points go into a triangle enclosing them, its corners ``scale`` (as
     :data:`ENCLOSING_SCALE`) times the bounding box's largest side from its centre;
@@ -3117,12 +3117,16 @@ def bowyer_watson(xy, order, scale):
     The triangles with a corner of the enclosing triangle are dropped at the end.
     A triangle whose in-circle determinant is within :data:`PREDICATE_TOL` × its
     permanent of 0 (the point on its circumcircle, up to round-off) stays out of the
-    cavity. The status is −1 when a walk fails, the point is not decisively inside
-    the circumcircle of the triangle the walk found (two points at one place), or a
-    triangle of a fan is not counter-clockwise beyond the same bound (a cavity that
-    round-off made other than a star about the point). Where points are
-    co-circular the triangulation is one of several, which the certificate
-    rejects. The enclosing corners are far but not at infinity: a triangle
+    cavity. The status is −1 when a walk fails, −2 when the point is not decisively
+    inside the circumcircle of the triangle the walk found (two points at one place,
+    or a point on the hull between two others much closer than the hull is wide,
+    where the circle through them and a corner of the enclosing triangle holds it
+    by a relative margin of about their distance over the corner's: 2.8·10⁻⁵ apart
+    in a box of side 2), −3 when a triangle of a fan is not counter-clockwise beyond
+    the same bound and −4 when the fan does not close (a cavity that round-off made
+    other than a star about the point). Where points are co-circular the
+    triangulation is one of several, which the certificate rejects. The
+    enclosing corners are far but not at infinity: a triangle
     whose circumcircle reaches one of them can be missing near the convex hull,
     so the result is a triangulation to check
     (:func:`curvimesh.triangulate.delaunay` certifies it)."""
@@ -3169,7 +3173,7 @@ def bowyer_watson(xy, order, scale):
             return fail, -1
         d, perm = in_circle_point(pts, corners[s, 0], corners[s, 1], corners[s, 2], qx, qy)
         if not d > PREDICATE_TOL * perm:
-            return fail, -1
+            return fail, -2
         seen[s] = inside[s] = i
         stack[0] = s
         top = 1
@@ -3201,7 +3205,7 @@ def bowyer_watson(xy, order, scale):
                 a, b = corners[s, k], corners[s, (k + 1) % 3]
                 d, perm = _orient(pts, a, b, qx, qy)
                 if not d > PREDICATE_TOL * perm or n_new == cap:
-                    return fail, -1
+                    return fail, -3
                 fan_a[n_new], fan_b[n_new], fan_o[n_new], fan_k[n_new] = a, b, o, -1
                 if o >= 0:
                     for j in range(3):
@@ -3209,7 +3213,7 @@ def bowyer_watson(xy, order, scale):
                             fan_k[n_new] = j
                 n_new += 1
         if n_new != nc + 2:  # a cavity that is not a disc
-            return fail, -1
+            return fail, -4
         for c in range(nc):
             alive[cavity[c]] = False
         for f in range(n_new):
