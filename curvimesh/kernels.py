@@ -2963,6 +2963,38 @@ def _walk(pts, corners, nbr, qx, qy, t):
 
 
 @njit(**_JIT)
+def _cavity(pts, corners, nbr, s, qx, qy, i, seen, stack, cavity, undecided_fails):
+    """The triangles reached from ``s`` through neighbours whose circumcircle strictly
+    holds q (in-circle determinant above :data:`PREDICATE_TOL` × its permanent), ``s``
+    first, written into ``cavity``; returns their number. A breadth-first search
+    marking the triangles it visits with ``seen[t] = i``. A determinant within the
+    bound of 0 leaves its triangle out, or with ``undecided_fails`` ends the search
+    with −1."""
+    seen[s] = i
+    stack[0] = s
+    top = 1
+    nc = 0
+    while top > 0:
+        top -= 1
+        t = stack[top]
+        cavity[nc] = t
+        nc += 1
+        for k in range(3):
+            o = nbr[t, k]
+            if o < 0 or seen[o] == i:
+                continue
+            seen[o] = i
+            d, perm = in_circle_point(pts, corners[o, 0], corners[o, 1], corners[o, 2], qx, qy)
+            if abs(d) <= PREDICATE_TOL * perm:
+                if undecided_fails:
+                    return -1
+            elif d > 0:
+                stack[top] = o
+                top += 1
+    return nc
+
+
+@njit(**_JIT)
 def delaunay_conflicts(pts, corners, nbr, q, conflict):
     """Marks in ``conflict`` ``(m,)`` the triangles whose circumcircle strictly holds
     some point of ``q`` ``(k, 2)`` (the cavities of Bowyer and Watson), in a
@@ -2984,6 +3016,7 @@ def delaunay_conflicts(pts, corners, nbr, q, conflict):
     m = corners.shape[0]
     stamp = np.full(m, -1, dtype=np.int64)
     stack = np.empty(m, dtype=np.int64)
+    cavity = np.empty(m, dtype=np.int64)
     t = 0
     for i in range(q.shape[0]):
         qx, qy = q[i, 0], q[i, 1]
@@ -2994,24 +3027,11 @@ def delaunay_conflicts(pts, corners, nbr, q, conflict):
         d, perm = in_circle_point(pts, corners[s, 0], corners[s, 1], corners[s, 2], qx, qy)
         if not d > PREDICATE_TOL * perm:
             return -1
-        stamp[s] = i
-        stack[0] = s
-        top = 1
-        while top > 0:
-            top -= 1
-            s = stack[top]
-            conflict[s] = True
-            for k in range(3):
-                o = nbr[s, k]
-                if o < 0 or stamp[o] == i:
-                    continue
-                stamp[o] = i
-                d, perm = in_circle_point(pts, corners[o, 0], corners[o, 1], corners[o, 2], qx, qy)
-                if abs(d) <= PREDICATE_TOL * perm:
-                    return -1
-                if d > 0:
-                    stack[top] = o
-                    top += 1
+        nc = _cavity(pts, corners, nbr, s, qx, qy, i, stamp, stack, cavity, True)
+        if nc < 0:
+            return -1
+        for c in range(nc):
+            conflict[cavity[c]] = True
     return 0
 
 
@@ -3174,25 +3194,9 @@ def bowyer_watson(xy, order, scale):
         d, perm = in_circle_point(pts, corners[s, 0], corners[s, 1], corners[s, 2], qx, qy)
         if not d > PREDICATE_TOL * perm:
             return fail, -2
-        seen[s] = inside[s] = i
-        stack[0] = s
-        top = 1
-        nc = 0
-        while top > 0:
-            top -= 1
-            s = stack[top]
-            cavity[nc] = s
-            nc += 1
-            for k in range(3):
-                o = nbr[s, k]
-                if o < 0 or seen[o] == i:
-                    continue
-                seen[o] = i
-                d, perm = in_circle_point(pts, corners[o, 0], corners[o, 1], corners[o, 2], qx, qy)
-                if d > PREDICATE_TOL * perm:  # on the circle, or undecided: left out
-                    inside[o] = i
-                    stack[top] = o
-                    top += 1
+        nc = _cavity(pts, corners, nbr, s, qx, qy, i, seen, stack, cavity, False)
+        for c in range(nc):
+            inside[cavity[c]] = i
         # the fan: one triangle (a, b, q) on each side a → b of the cavity's boundary,
         # in the cavity's slots and two new ones (a disc of nc triangles has nc + 2 sides)
         n_new = 0
