@@ -95,9 +95,9 @@ def delaunay(points: NDArray, *, box: tuple[float, float, float, float] | None =
     pts = np.asarray(points, dtype=float)
     if len(pts) < 3:
         raise WorkError(f"cannot triangulate {len(pts)} points")
-    tris = _certified_triangles(pts)
-    if tris is not None:
-        return Mesh(pts, tris, box)
+    mesh = _certified_delaunay(pts, box)
+    if mesh is not None:
+        return mesh
     simplices = _qhull_triangles(pts)
     used = np.zeros(len(pts), dtype=bool)
     used[simplices.ravel()] = True
@@ -111,17 +111,20 @@ def delaunay(points: NDArray, *, box: tuple[float, float, float, float] | None =
     return Mesh(pts, canonical_triangles(simplices), box)
 
 
-def _certified_triangles(pts: NDArray) -> NDArray[np.int64] | None:
-    """The Delaunay triangulation of ``pts`` ``(n, 2)`` in canonical order
-    (:func:`canonical_triangles`) by :func:`curvimesh.kernels.bowyer_watson` (in the
+def _certified_delaunay(
+    pts: NDArray, box: tuple[float, float, float, float] | None = None
+) -> Mesh | None:
+    """The Delaunay triangulation of ``pts`` ``(n, 2)``, triangles in canonical order
+    (:func:`canonical_triangles`), by :func:`curvimesh.kernels.bowyer_watson` (in the
     order of :func:`_walk_order`), when it is certified the unique one
-    (:func:`_certified`), hence Qhull's; else None."""
+    (:func:`_certified`), hence Qhull's; else None. The mesh keeps the tables the
+    certificate computed (edges, neighbours)."""
     pts = np.ascontiguousarray(pts, dtype=float)
     tris, status = kernels.bowyer_watson(pts, _walk_order(pts), kernels.ENCLOSING_SCALE)
     if status != 0 or len(tris) == 0:
         return None
-    tris = canonical_triangles(tris)
-    return tris if _certified(Mesh(pts, tris)) else None
+    mesh = Mesh(pts, canonical_triangles(tris), box)
+    return mesh if _certified(mesh) else None
 
 
 def _walk_order(q: NDArray) -> NDArray[np.int64]:
@@ -218,7 +221,7 @@ def delaunay_insert(mesh: Mesh, new: NDArray) -> Mesh | None:
     makes it). The conflict set C, the triangles whose circumcircle strictly
     holds a point of Q = ``new``, comes from walks and breadth-first searches
     (:func:`curvimesh.kernels.delaunay_conflicts`); S is Q and the corners of
-    C. S is triangulated (:func:`_certified_triangles`, else Qhull), and the
+    C. S is triangulated (:func:`_certified_delaunay`, else Qhull), and the
     triangles of DT(S) inside the region R that C covers replace C. Why: the
     triangles outside C keep empty circumcircles, so they stay in DT(P ∪ Q); R
     is bounded by their edges (and hull edges), which are edges of DT(S) too
@@ -259,12 +262,13 @@ def delaunay_insert(mesh: Mesh, new: NDArray) -> Mesh | None:
             return None
     ids = np.concatenate([np.unique(corners[conflict]), n + np.arange(len(q))])
     pts = np.concatenate([pts_old, q])
-    local = _certified_triangles(pts[ids])
-    if local is None:
+    s_mesh = _certified_delaunay(pts[ids])
+    if s_mesh is None:
         try:
-            local = _qhull_triangles(pts[ids])
+            s_mesh = Mesh(pts[ids], _qhull_triangles(pts[ids]))
         except WorkError:
             return None
+    local = s_mesh.triangles
     # R's boundary: the sides of C's triangles towards a triangle outside C or none,
     # directed with R on their left, in S's numbering
     t, k = np.nonzero(~conflict[nbr] | (nbr < 0))
@@ -290,7 +294,7 @@ def delaunay_insert(mesh: Mesh, new: NDArray) -> Mesh | None:
     wall[seed] = True
     wall[twin[twin >= 0]] = True
     inside = np.zeros(len(local), dtype=bool)
-    s_nbr = np.ascontiguousarray(Mesh(pts[ids], local).neighbours)
+    s_nbr = np.ascontiguousarray(s_mesh.neighbours)
     kernels.flood_fill(s_nbr, wall.reshape(-1, 3), seed // 3, inside)
     if inside[twin[twin >= 0] // 3].any():  # R's boundary does not close it
         return None
