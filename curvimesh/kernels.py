@@ -2966,8 +2966,8 @@ def _walk(pts, corners, nbr, qx, qy, t):
 def _cavity(pts, corners, nbr, s, qx, qy, i, seen, stack, cavity, undecided_fails):
     """The triangles reached from ``s`` through neighbours whose circumcircle strictly
     holds q (in-circle determinant above :data:`PREDICATE_TOL` × its permanent), ``s``
-    first, written into ``cavity``; returns their number. A breadth-first search
-    marking the triangles it visits with ``seen[t] = i``. A determinant within the
+    first, written into ``cavity``; returns their number. A search over neighbours (a
+    stack) marking the triangles it visits with ``seen[t] = i``. A determinant within the
     bound of 0 leaves its triangle out, or with ``undecided_fails`` ends the search
     with −1."""
     seen[s] = i
@@ -3001,7 +3001,7 @@ def delaunay_conflicts(pts, corners, nbr, q, conflict):
     Delaunay triangulation ``corners`` ``(m, 3)`` of ``pts`` with neighbours ``nbr``.
 
     For each q: a visibility walk (from where the last one ended) to a triangle
-    that holds q up to the tolerance, then a breadth-first search through the
+    that holds q up to the tolerance, then a search (:func:`_cavity`) through the
     neighbours whose circumcircle holds q (a cavity is edge-connected: it is
     star-shaped from q). Returns 0, or −1 when a walk leaves the triangulation or
     an in-circle determinant is within :data:`PREDICATE_TOL` × its permanent of 0
@@ -3131,9 +3131,10 @@ def bowyer_watson(xy, order, scale):
     The points go into a triangle enclosing them, its corners ``scale`` (as
     :data:`ENCLOSING_SCALE`) times the bounding box's largest side from its centre;
     each is located by a visibility walk from the last triangle made (:func:`_walk`),
-    its cavity found by a breadth-first search of the triangles whose
-    circumcircle strictly holds it (as :func:`delaunay_conflicts`), and the cavity
-    replaced by the fan of triangles joining the point to the cavity's boundary.
+    its cavity found by a search over neighbours of the triangles whose
+    circumcircle strictly holds it (:func:`_cavity`, as :func:`delaunay_conflicts`),
+    and the cavity replaced by the fan of triangles joining the point to the
+    cavity's boundary.
     The triangles with a corner of the enclosing triangle are dropped at the end.
     A triangle whose in-circle determinant is within :data:`PREDICATE_TOL` × its
     permanent of 0 (the point on its circumcircle, up to round-off) stays out of the

@@ -219,7 +219,7 @@ def delaunay_insert(mesh: Mesh, new: NDArray) -> Mesh | None:
 
     ``mesh`` is the Delaunay triangulation of its points P (as :func:`delaunay`
     makes it). The conflict set C, the triangles whose circumcircle strictly
-    holds a point of Q = ``new``, comes from walks and breadth-first searches
+    holds a point of Q = ``new``, comes from walks and searches through neighbours
     (:func:`curvimesh.kernels.delaunay_conflicts`); S is Q and the corners of
     C. S is triangulated (:func:`_certified_delaunay`, else Qhull), and the
     triangles of DT(S) inside the region R that C covers replace C. Why: the
@@ -262,10 +262,11 @@ def delaunay_insert(mesh: Mesh, new: NDArray) -> Mesh | None:
             return None
     ids = np.concatenate([np.unique(corners[conflict]), n + np.arange(len(q))])
     pts = np.concatenate([pts_old, q])
-    s_mesh = _certified_delaunay(pts[ids])
+    s_pts = pts[ids]
+    s_mesh = _certified_delaunay(s_pts)
     if s_mesh is None:
         try:
-            s_mesh = Mesh(pts[ids], _qhull_triangles(pts[ids]))
+            s_mesh = Mesh(s_pts, _qhull_triangles(s_pts))
         except WorkError:
             return None
     local = s_mesh.triangles
