@@ -323,18 +323,16 @@ def _insert_round(
     q = np.full(shape, np.nan)
     q[need] = quality_from(metric_areas(field, tri_nodes[need]), lens[need])
     q = np.where(valid, q, -np.inf)
-    uses = _USES[None, None, :, :, None]  # (1, 1, 16, 12, 1)
-    q_cav = np.where(uses, q[:, :, None], np.inf).min(axis=3)
-    tg = _TARGETS[None, None, :, :, None]
-    sp = s_len[:, :, None]  # (s, P, 1, 8, L)
-    sp_min = np.where(tg, sp, np.inf).min(axis=3)
-    sp_max = np.where(tg, sp, -np.inf).max(axis=3)
-    n_long_sp = (tg & (sp > max_length)).sum(axis=3)
 
     def at_level(v: NDArray) -> NDArray:
-        return np.take_along_axis(v, level[..., None], axis=3)[..., 0]
+        # (s, P, k, L) → (s, P, 16, k): each cavity's row at its level
+        return np.take_along_axis(v[:, :, None], level[..., None, None], axis=4)[..., 0]
 
-    q_best, sp_min, sp_max, n_long_sp = map(at_level, (q_cav, sp_min, sp_max, n_long_sp))
+    q_best = np.where(_USES, at_level(q), np.inf).min(axis=3)  # (s, P, 16)
+    sp = at_level(s_len)  # (s, P, 16, 8)
+    sp_min = np.where(_TARGETS, sp, np.inf).min(axis=3)
+    sp_max = np.where(_TARGETS, sp, -np.inf).max(axis=3)
+    n_long_sp = (_TARGETS & (sp > max_length)).sum(axis=3)
     long_left = (~bits[None] & (length[oedge] > max_length)[:, None]).sum(axis=2)  # (s, 16)
     seed_len = length[seeds]
     admissible = (
