@@ -242,9 +242,10 @@ def work_adapt(spec: dict) -> dict:
     """One curvimesh adapt: seconds per stage, total, peak RSS, quality (if asked).
 
     With ``warm_below`` and a first adapt of at most that many seconds, the metric is
-    loaded again and adapted a second time in the same process (``warm``: its total,
-    from the metric's code to the mesh, numba's kernels loaded by the first: what a
-    worker of ``curvimesh batch`` takes for its later metrics)."""
+    loaded again, as a field of another source (not equal to the first: nothing of the
+    first run's is found by it), and adapted a second time in the same process
+    (``warm``: its total, from the metric's code to the mesh, numba's kernels loaded by
+    the first: what a worker of ``curvimesh batch`` takes for its later metrics)."""
     from curvimesh.adapt import adapt
     from curvimesh.metric import load_metric_text
     from curvimesh.report import mesh_report
@@ -269,7 +270,11 @@ def work_adapt(spec: dict) -> dict:
     if spec.get("report"):
         out["quality"] = _quality(mesh_report(fld, res.mesh))
     if spec.get("warm_below") is not None and total <= spec["warm_below"]:
-        again = load_metric_text(text)
+        # another source: a field equal to the first would find the first run's
+        # searches and measures in the memo tables keyed by the field (MetricField
+        # compares by value), which a batch worker's next metric does not
+        again = load_metric_text(text, source="<warm run>")
+        assert again != fld
         t = time.perf_counter()
         _ = again.kernel
         adapt(again)
