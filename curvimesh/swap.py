@@ -66,6 +66,7 @@ from curvimesh.mesh import (
     apply_flips,
     flip_candidates,
     independent_flips,
+    local_edge,
     p1_edges,
     p1_of,
     sorted_member,
@@ -225,10 +226,6 @@ def swap(
         edge_lengths_fast(field, pts[e[:, 0]], pts[e[:, 1]], mids),
     )
     tris = np.array(p1.corners)
-
-    def stored_length(u: NDArray, v: NDArray) -> NDArray:
-        return store.length[store.find(store.key(u, v))[0]]
-
     optimal = EdgeStore(n)  # optimal nodes of candidate new edges
     m = len(tris)
     rejected = np.zeros(0, dtype=np.int64)  # t1 * m + t2 of rejected candidates, ascending
@@ -255,8 +252,13 @@ def swap(
         e_ab, a, b, c, d, t1, t2, qk = (v[fresh] for v in (e_ab, a, b, c, d, t1, t2, qk))
         if len(a) == 0:
             break
+        # the quad's outer edges (rows of edges): t1 = (a, b, c) holds b-c and c-a after
+        # a-b, t2 = (b, a, d) holds a-d and d-b after b-a
+        k1, k2 = local_edge(tri_edges, t1, e_ab), local_edge(tri_edges, t2, e_ab)
+        o_bc, o_ca = tri_edges[t1, (k1 + 1) % 3], tri_edges[t1, (k1 + 2) % 3]
+        o_ad, o_db = tri_edges[t2, (k2 + 1) % 3], tri_edges[t2, (k2 + 2) % 3]
         # candidates no new edge could make worth it, before searching their parabolas
-        outer = sum(stored_length(u, v) ** 2 for u, v in ((a, d), (c, a), (d, b), (b, c)))
+        outer = sum(elen[o] ** 2 for o in (o_ad, o_ca, o_db, o_bc))
         q_old = np.minimum(q[t1], q[t2])
         floor = in_range = None
         if length_rule:
@@ -273,7 +275,9 @@ def swap(
             bound, q_old[k], floor, None if in_range is None else in_range[k], min_gain
         )
         rejected = sorted_union(rejected, qk[hopeless])
-        e_ab, a, b, c, d, t1, t2, qk = (v[~hopeless] for v in (e_ab, a, b, c, d, t1, t2, qk))
+        e_ab, a, b, c, d, t1, t2, qk, o_ad, o_ca, o_db, o_bc = (
+            v[~hopeless] for v in (e_ab, a, b, c, d, t1, t2, qk, o_ad, o_ca, o_db, o_bc)
+        )
         if len(a) == 0:
             break
         # the new edge's optimal node (computed once per pair, kept in the store)
@@ -290,10 +294,7 @@ def swap(
         opt_mid = optimal.mid[optimal.find(ncd)[0]]
         seg_mid = 0.5 * (pts[c] + pts[d])
         # outer edges' nodes: t1' = (a, d, c) edges ad, dc, ca; t2' = (d, b, c) edges db, bc, cd
-        # the four outer edges, looked up once for their nodes and lengths
-        p_ad, p_ca = store.find(store.key(a, d))[0], store.find(store.key(c, a))[0]
-        p_db, p_bc = store.find(store.key(d, b))[0], store.find(store.key(b, c))[0]
-        m_ad, m_ca, m_db, m_bc = (store.mid[p] for p in (p_ad, p_ca, p_db, p_bc))
+        m_ad, m_ca, m_db, m_bc = (emid[o] for o in (o_ad, o_ca, o_db, o_bc))
         level = np.full(len(a), -1)
         new_mid = seg_mid.copy()
         for li, s in enumerate(BACKTRACK):
@@ -320,7 +321,7 @@ def swap(
         if valid.any():
             v = np.flatnonzero(valid)
             l_cd = edge_lengths_fast(field, pts[c[v]], pts[d[v]], new_mid[v])
-            l_ad, l_ca, l_db, l_bc = (store.length[p[v]] for p in (p_ad, p_ca, p_db, p_bc))
+            l_ad, l_ca, l_db, l_bc = (elen[o[v]] for o in (o_ad, o_ca, o_db, o_bc))
             n1 = _nodes(
                 pts, np.column_stack([a, d, c])[v], np.stack([m_ad[v], new_mid[v], m_ca[v]], axis=1)
             )
