@@ -682,9 +682,10 @@ def write_markdown(ctx: dict, all_results: dict, throughput: dict, profiles: dic
         "",
         f"curvimesh ran its compiled kernels on {ctx['threads']} threads (numba); its total "
         "includes the `metric code` column: compiling the metric's scalar code on a metric's "
-        "first run (about 1 s), loading it from the cache on the later ones; numba's start "
-        "(about 0.2 s) and the loads of its compiled kernels from their cache (about 0.2 s) "
-        "fall in the first stages. `warm s`: the metric loaded again and adapted a second "
+        "first run (about 1 s), loading it from the cache on the later ones, and numba's start "
+        "(about 0.2 s, its first compiled call); the loads of its compiled kernels from their "
+        "cache (about 0.2 s) fall in the stages that first call them. `warm s`: the metric "
+        "loaded again and adapted a second "
         "time in the same process (where the first run took at most "
         f"{ctx['max_repeat_seconds']:g} s), numba's kernels already loaded, as for a "
         "`curvimesh batch` worker's later metrics (the median over the runs). A warm-up run "
