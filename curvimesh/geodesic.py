@@ -912,9 +912,10 @@ def parabola_verdicts(
     ``short`` seen, or the bracket's convex floor above ``long``, or a length
     at most ``long`` seen with the floor at least ``short``; the floor only
     once the bracket is at most :data:`curvimesh.kernels.FLOOR_WIDTH` wide in α).
-    With ``short`` alone the compiled pairs are decided one by one in the same
-    order (:func:`curvimesh.kernels.close_pairs`), each bound stopping at the
-    first probe that leaves it short of its verdict.
+    With ``short`` alone the compiled pairs are decided one by one
+    (:func:`curvimesh.kernels.close_pairs`), both bounds before the straight
+    segment, each bound stopping at the first probe that leaves it short of its
+    verdict (the same verdicts wherever the bounds hold).
     """
     cm = field.kernel
     if cm is not None and short is not None and long is None:

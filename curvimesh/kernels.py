@@ -1203,20 +1203,31 @@ def lens_bounds(fn, a, b, probes, out):
 def _is_close(fn, ax, ay, bx, by, short, margin, probes, ts, ws, grid, t, w, tol, straight_first):
     """Whether the shortest parabola from a to b is below ``short``, decided as
     :func:`curvimesh.geodesic.parabola_verdicts` with only ``short``: far if the
-    chord bound is at least ``margin`` × short (:func:`_chord_bound_reaches`), close
-    if the straight segment (rule ``ts``, ``ws``) is below it, far if the lens bound
-    (:func:`_lens_bound`) is at least ``margin`` × short, else by the search
-    stopping at its verdict. With ``straight_first`` the segment is measured before
-    the bound (for pairs likely close: the bound is then not needed)."""
-    if not straight_first and _chord_bound_reaches(fn, ax, ay, bx, by, probes, margin * short):
-        return False
-    upper = _parabola_length(fn, ax, ay, bx, by, 0.5 * (ax + bx), 0.5 * (ay + by), ts, ws)
-    if upper < short:  # (an undefined length is inf, never NaN)
-        return True
-    if straight_first and _chord_bound_reaches(fn, ax, ay, bx, by, probes, margin * short):
+    chord bound is at least ``margin`` × short (:func:`_chord_bound_reaches`) or
+    the lens bound (:func:`_lens_bound`) is, close if the straight segment (rule
+    ``ts``, ``ws``) is below it, else by the search stopping at its verdict.
+
+    The bounds are lower bounds (from the metric at their probes, with the margin
+    for the metric between them) and the segment an upper one: where the bounds
+    hold, no pair is both far and close, and the order changes only the work. The
+    bounds come first, each stopping at its first probe that leaves it short (for
+    pairs likely far: the segment is then not needed; in the three toys' sampling
+    at 3.8·10⁴ vertices, of the 150,193 pairs that the chord bound leaves open the
+    lens bound calls 128,136 far, and the segment had found 2,172 close, none of
+    them far by the lens bound). With ``straight_first`` the segment is measured
+    first (for pairs likely close: the bounds are then not needed)."""
+    if straight_first:
+        upper = _parabola_length(fn, ax, ay, bx, by, 0.5 * (ax + bx), 0.5 * (ay + by), ts, ws)
+        if upper < short:  # (an undefined length is inf, never NaN)
+            return True
+    if _chord_bound_reaches(fn, ax, ay, bx, by, probes, margin * short):
         return False
     if _lens_bound(fn, ax, ay, bx, by, probes, margin * short) >= margin * short:
         return False
+    if not straight_first:
+        upper = _parabola_length(fn, ax, ay, bx, by, 0.5 * (ax + bx), 0.5 * (ay + by), ts, ws)
+        if upper < short:
+            return True
     return _search(fn, ax, ay, bx, by, grid, t, w, tol, 60, True, short, math.inf)[2] < 0
 
 
