@@ -1650,6 +1650,30 @@ def _in_circle(pts, a, b, c, d, g11, g12, g22):
 
 
 @njit(**_JIT)
+def _edge_violation(fn, pts, corners, nbr_k, t, k, o):
+    """(violation, centroid x, centroid y) of the interior edge k of t (triangle o across):
+    for a convex quad, the relative in-circle determinant of its fourth corner in the
+    metric at the quad's centroid where it is above 1e-10, else 0; NaN where the metric
+    is undefined at the centroid (:func:`metric_delaunay_flips`)."""
+    k2 = nbr_k[t, k]
+    a = corners[t, k]
+    b = corners[t, (k + 1) % 3]
+    c = corners[t, (k + 2) % 3]
+    d = corners[o, (k2 + 2) % 3]
+    cx = 0.25 * (pts[a, 0] + pts[b, 0] + pts[c, 0] + pts[d, 0])
+    cy = 0.25 * (pts[a, 1] + pts[b, 1] + pts[c, 1] + pts[d, 1])
+    if not (_area(pts, a, d, c) > 0 and _area(pts, d, b, c) > 0):
+        return 0.0, cx, cy
+    g = fn(cx, cy)
+    if not spd3(g):
+        return math.nan, cx, cy
+    det, scale = _in_circle(pts, a, b, c, d, g[0], g[1], g[2])
+    if det > 1e-10 * scale**2:
+        return det / scale**2, cx, cy
+    return 0.0, cx, cy
+
+
+@njit(parallel=True, **_JIT)
 def metric_delaunay_flips(fn, pts, corners, nbr, nbr_k, max_rounds, bad):
     """:func:`curvimesh.triangulate.metric_delaunay`'s rounds of Lawson flips, in place.
 
@@ -1663,12 +1687,16 @@ def metric_delaunay_flips(fn, pts, corners, nbr, nbr_k, max_rounds, bad):
     those touching no triangle flipped before in the round, and repeats
     until none is left or ``max_rounds``. Only edges of triangles changed in
     the last round are measured again. Returns the number of rounds, or −1
-    with the undefined centroid in ``bad`` ``(2,)``.
+    with the undefined centroid in ``bad`` ``(2,)`` (the first in the order of the
+    triangles and their edges).
+
+    The measures of a round are made on numba's threads (each edge is written by
+    the one of its triangles that owns it), then taken in that order: the same
+    rounds and flips as one thread makes.
     """
     m = corners.shape[0]
     n = pts.shape[0]
-    viol = np.zeros((m, 3), dtype=np.bool_)
-    prio = np.zeros((m, 3))
+    prio = np.zeros((m, 3))  # > 0: the edge violates (by that much); NaN: undefined
     dirty = np.ones(m, dtype=np.bool_)
     used = np.zeros(m, dtype=np.bool_)
     cap = 3 * m
@@ -1677,31 +1705,22 @@ def metric_delaunay_flips(fn, pts, corners, nbr, nbr_k, max_rounds, bad):
     ct = np.empty(cap, dtype=np.int64)
     ck = np.empty(cap, dtype=np.int64)
     for rounds in range(max_rounds):
+        for t in prange(m):
+            for k in range(3):
+                o = nbr[t, k]
+                # not boundary, nor the edge of the smaller triangle o
+                if o > t and (dirty[t] or dirty[o]):
+                    prio[t, k] = _edge_violation(fn, pts, corners, nbr_k, t, k, o)[0]
         count = 0
         for t in range(m):
             for k in range(3):
                 o = nbr[t, k]
-                if o < t:  # boundary, or the edge belongs to the smaller triangle o
+                if o < t:
                     continue
-                if dirty[t] or dirty[o]:
-                    k2 = nbr_k[t, k]
-                    a = corners[t, k]
-                    b = corners[t, (k + 1) % 3]
-                    c = corners[t, (k + 2) % 3]
-                    d = corners[o, (k2 + 2) % 3]
-                    viol[t, k] = False
-                    if _area(pts, a, d, c) > 0 and _area(pts, d, b, c) > 0:
-                        cx = 0.25 * (pts[a, 0] + pts[b, 0] + pts[c, 0] + pts[d, 0])
-                        cy = 0.25 * (pts[a, 1] + pts[b, 1] + pts[c, 1] + pts[d, 1])
-                        g = fn(cx, cy)
-                        if not spd3(g):
-                            bad[0], bad[1] = cx, cy
-                            return -1
-                        det, scale = _in_circle(pts, a, b, c, d, g[0], g[1], g[2])
-                        if det > 1e-10 * scale**2:
-                            viol[t, k] = True
-                            prio[t, k] = det / scale**2
-                if viol[t, k]:
+                if math.isnan(prio[t, k]):
+                    _, bad[0], bad[1] = _edge_violation(fn, pts, corners, nbr_k, t, k, o)
+                    return -1
+                if prio[t, k] > 0.0:
                     a = corners[t, k]
                     b = corners[t, (k + 1) % 3]
                     keys[count] = min(a, b) * n + max(a, b)

@@ -492,6 +492,28 @@ def test_compiled_flips_give_the_numpy_triangulation(name):
     assert got.corners.tolist() != mesh.corners.tolist()  # the metric made it flip
 
 
+def test_compiled_flips_on_one_thread_or_two_make_the_same_triangulation():
+    # the measures of a round are made on numba's threads, the flips in one order
+    import numba
+
+    from curvimesh.triangulate import delaunay, metric_delaunay
+
+    fld = load_metric(METRICS / "three_toys.yaml")
+    mesh = delaunay(_random_cloud(fld, 3000, 23), box=fld.box)
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        one = metric_delaunay(fld, mesh).corners.tolist()
+    finally:
+        numba.set_num_threads(threads)
+    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+    try:
+        two = metric_delaunay(fld, mesh).corners.tolist()
+    finally:
+        numba.set_num_threads(threads)
+    assert one == two and one != mesh.corners.tolist()
+
+
 def test_compiled_flips_on_a_regular_grid_break_ties_as_numpy():
     # a constant metric on a lattice: every quad is co-circular in the metric up to
     # rounding, so the order of equal violations decides
