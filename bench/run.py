@@ -25,7 +25,7 @@ tensor view (``TT``) on a structured background triangulation of spacing
 ``BACKGROUND_SPACING``, with values from curvimesh's own ``MetricField.tensor``.
 
 Every run is a fresh subprocess (this file with ``--worker``), which reports
-its own peak RSS (``ru_maxrss``) read right after meshing, before the quality
+its own peak RSS (``VmHWM``, see :func:`_rss_mb`) read right after meshing, before the quality
 report. Each configuration runs ``--repeat`` times and medians are quoted,
 except that a configuration whose first run takes longer than
 ``--max-repeat-seconds`` runs once (the ``runs`` column says how many). At each
@@ -220,6 +220,18 @@ def _cpu() -> float:
 
 
 def _rss_mb() -> float:
+    """The process's peak resident memory (MB): ``VmHWM`` where /proc has it, the
+    high-water mark of this program's own address space, else ``ru_maxrss``. Linux
+    keeps ``ru_maxrss`` across ``execve`` and starts a child at its parent's size at the
+    fork, so a worker's figure was at least the size of the parent it came from (this
+    script, 222 MB after it had compiled the metrics it checks)."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0  # kB
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
 
 
@@ -674,7 +686,8 @@ def write_markdown(ctx: dict, all_results: dict, throughput: dict, profiles: dic
         "Times are medians over `runs` fresh processes (a configuration whose first run "
         f"took over {ctx['max_repeat_seconds']:g} s ran once), the tools taking turns at "
         "each size (curvimesh, then each Gmsh setting, then again). Peak RSS is the process's "
-        "`ru_maxrss` right after meshing (in brackets: before meshing, after imports and "
+        "own high-water mark (`VmHWM`) right after meshing (in brackets: before meshing, "
+        "after imports and "
         "metric loading). Quality figures are `curvimesh.report.mesh_report` in our metric, "
         "for Gmsh on its P1 mesh: edge lengths in the metric (in range: 0.7 ≤ L ≤ 1.4), "
         "quality (4), efficiency = triangles / ideal unit-triangle count. "
