@@ -1433,6 +1433,80 @@ def shoot(fn, x0, v0, total, tol, max_iterations, end, vel, ok):
 
 
 # --------------------------------------------------------------------------- #
+# Vertex relocation (:mod:`curvimesh.smooth`)                                 #
+# --------------------------------------------------------------------------- #
+
+
+@_row_kernel(rows_arg=3)
+def tracked_lengths(fn, fd, pts, edges, alpha, tol, t, w, length, kept):
+    """:func:`curvimesh.smooth.tracked_lengths` row by row, in one pass (the same
+    operations in the same order as its numpy, hence the same bits): for each edge
+    ``edges[r]`` ``(E, 2)`` between ``pts`` ``(n, 2)``, the geodesic's bend at the chord's
+    middle (:func:`curvimesh.geodesic.geodesic_alpha`, ``fd`` the metric with its
+    derivatives; 0 where not finite), the length by the rule (``t``, ``w``) of the parabola
+    at ``alpha[r]`` and, where the bend is not within ``tol`` of it, at the bend: the
+    shorter into ``length[r]`` and its α into ``kept[r]`` (α on a tie)."""
+    for r in prange(edges.shape[0]):
+        i, j = edges[r, 0], edges[r, 1]
+        ax, ay, bx, by = pts[i, 0], pts[i, 1], pts[j, 0], pts[j, 1]
+        dx, dy = bx - ax, by - ay
+        cx, cy = 0.5 * (ax + bx), 0.5 * (ay + by)
+        acc_x, acc_y = _acceleration(fd, cx, cy, dx, dy)
+        ox, oy = -0.125 * acc_x, -0.125 * acc_y
+        bend = (ox * dy + oy * (-dx)) / (dx * dx + dy * dy)
+        if not math.isfinite(bend):
+            bend = 0.0
+        a = alpha[r]
+        best = _parabola_length(fn, ax, ay, bx, by, cx + a * dy, cy + a * (-dx), t, w)
+        if not abs(bend - a) <= tol:
+            other = _parabola_length(fn, ax, ay, bx, by, cx + bend * dy, cy + bend * (-dx), t, w)
+            if other < best:
+                best, a = other, bend
+        length[r], kept[r] = best, a
+
+
+@njit(**_JIT)
+def relocation_sweep(pts, edges, length, weight, fixed, relax, new, moved):
+    """One sweep of :func:`curvimesh.smooth.relocate`'s moves, as its numpy did them (the
+    same operations in the same order, hence the same bits): for each edge a–b of
+    ``edges`` ``(E, 2)`` and metric length L = ``length[e]`` (1 where L is not finite and
+    positive), the targets p_b + (p_a − p_b)/L of a and p_a + (p_b − p_a)/L of b (p_a
+    itself where L is not), weighed by ``weight[e]``; each vertex v goes to
+    p_v + ``relax`` (Σ w t / max(Σ w, 1e-300) − p_v), unless ``fixed[v]`` or it has no
+    edge, into ``new`` ``(n, 2)``, and ``moved[v]`` says whether that move is finite and
+    not zero. The sums run over the edges' first ends, then their second ends, each
+    in the order of ``edges`` (numpy's ``bincount`` over the two ends concatenated)."""
+    n, m = pts.shape[0], edges.shape[0]
+    count = np.zeros(n, dtype=np.int64)
+    wsum = np.zeros(n)
+    sx = np.zeros(n)
+    sy = np.zeros(n)
+    for r in range(2 * m):
+        e = r if r < m else r - m
+        i, j = (edges[e, 0], edges[e, 1]) if r < m else (edges[e, 1], edges[e, 0])
+        ln = length[e]
+        if math.isfinite(ln) and ln > 0:
+            tx = pts[j, 0] + (pts[i, 0] - pts[j, 0]) / ln
+            ty = pts[j, 1] + (pts[i, 1] - pts[j, 1]) / ln
+        else:
+            tx, ty = pts[i, 0], pts[i, 1]
+        w = weight[e]
+        count[i] += 1
+        wsum[i] += w
+        sx[i] += w * tx
+        sy[i] += w * ty
+    for v in range(n):
+        den = 1e-300 if wsum[v] < 1e-300 else wsum[v]  # np.maximum: NaN stays
+        if fixed[v] or count[v] == 0:
+            mx, my = 0.0, 0.0
+        else:
+            mx = relax * (sx[v] / den - pts[v, 0])
+            my = relax * (sy[v] / den - pts[v, 1])
+        new[v, 0], new[v, 1] = pts[v, 0] + mx, pts[v, 1] + my
+        moved[v] = not (math.isnan(mx) or math.isnan(my)) and (abs(mx) > 0 or abs(my) > 0)
+
+
+# --------------------------------------------------------------------------- #
 # Interpolation error of a function on curved triangles                        #
 # --------------------------------------------------------------------------- #
 

@@ -19,8 +19,14 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from curvimesh import kernels
 from curvimesh.freenode import shortest_parabola
-from curvimesh.geodesic import geodesic_alpha, parabola_length_rule, parabola_midnode
+from curvimesh.geodesic import (
+    gauss_rule,
+    geodesic_alpha,
+    parabola_length_rule,
+    parabola_midnode,
+)
 from curvimesh.mesh import Mesh, carried, signed_areas
 from curvimesh.metric import MetricField
 from curvimesh.sampling import too_close
@@ -85,8 +91,19 @@ def tracked_lengths(
     of the last sweep, at ends moved by a few hundredths, is not. Where the two
     are within the searches' tolerance (:data:`ALPHA_TOL`) they are one guess
     to the accuracy α is known with, and only the last α is measured (most
-    edges: one length instead of two).
+    edges: one length instead of two). With a compiled metric, in one pass
+    (:func:`curvimesh.kernels.tracked_lengths`: the same bits).
     """
+    cm = field.kernel
+    if cm is not None:
+        length, kept = np.empty(len(edges)), np.empty(len(edges))
+        t, w = gauss_rule(2, 5)
+        kernels.tracked_lengths(
+            cm.g, cm.gd, np.ascontiguousarray(points, dtype=float),
+            np.ascontiguousarray(edges, dtype=np.int64),
+            np.ascontiguousarray(alpha, dtype=float), ALPHA_TOL, t, w, length, kept,
+        )  # fmt: skip
+        return length, kept
     a, b = points[edges[:, 0]], points[edges[:, 1]]
     bend = geodesic_alpha(field, a, b)
     bend[~np.isfinite(bend)] = 0.0
@@ -210,23 +227,16 @@ def relocate(
     e = cur.edges
     length, alpha = edge_parabola_lengths(field, pts, e)
     for sweep in range(sweeps):
-        i = np.concatenate([e[:, 0], e[:, 1]])
-        j = np.concatenate([e[:, 1], e[:, 0]])
-        ln = np.concatenate([length, length])
-        ok = np.isfinite(ln) & (ln > 0)
-        target = pts[j] + (pts[i] - pts[j]) / np.where(ok, ln, 1.0)[:, None]
-        target[~ok] = pts[i[~ok]]
-        # outliers weigh more: w = max(L, 1/L)^power
-        w = np.where(ok, np.maximum(ln, 1.0 / np.where(ok, ln, 1.0)), 1.0) ** power
-        count = np.bincount(i, minlength=n)
-        wsum = np.bincount(i, w, minlength=n)
-        avg = (
-            np.column_stack([np.bincount(i, w * target[:, k], minlength=n) for k in range(2)])
-            / np.maximum(wsum, 1e-300)[:, None]
-        )
-        move = np.where(fixed[:, None] | (count[:, None] == 0), 0.0, relax * (avg - pts))
-        new = pts + move
-        moved = np.flatnonzero(np.abs(move).max(axis=1) > 0)
+        # each vertex towards the weighted mean of the points that would make its edges
+        # unit (kernels.relocation_sweep); outliers weigh more: w = max(L, 1/L)^power
+        ok = np.isfinite(length) & (length > 0)
+        w = np.where(ok, np.maximum(length, 1.0 / np.where(ok, length, 1.0)), 1.0) ** power
+        new, is_moved = np.empty_like(pts), np.empty(n, dtype=bool)
+        kernels.relocation_sweep(
+            pts, np.ascontiguousarray(e), np.ascontiguousarray(length), w, fixed,
+            float(relax), new, is_moved,
+        )  # fmt: skip
+        moved = np.flatnonzero(is_moved)
         pts, length, alpha = _undo_bad_moves(
             field, pts, new, moved, e, cur.corners, min_dist, length, alpha, max_length
         )
