@@ -930,3 +930,61 @@ def test_the_kernels_take_the_metric_typed_once():
     assert np.array_equal(held, raw)
     np.testing.assert_allclose(held, fld.tensor(pts), rtol=1e-12)
     assert cm.g(0.1, 0.2) == cm.g.cfunc(0.1, 0.2)
+
+
+@pytest.mark.parametrize("name", ["three_toys", "front"])
+def test_tracked_lengths_are_the_bend_and_rule_lengths_bit_for_bit(name):
+    # kernels.tracked_lengths against its definition (smooth.tracked_lengths' numpy):
+    # the bend by geodesic_alpha, the parabolas' lengths by parabola_length_rule, the
+    # shorter kept (the last α on a tie), both on the compiled metric
+    from curvimesh import smooth
+
+    fld = load_metric(METRICS / f"{name}.yaml")
+    rng = np.random.default_rng(31)
+    a = box_points(fld, 3000, 32)
+    b = a + 0.05 * rng.normal(size=a.shape)
+    pts = np.concatenate([a, b])
+    edges = np.column_stack([np.arange(3000), np.arange(3000, 6000)])
+    alpha = geo.geodesic_alpha(fld, a, b) + rng.choice([0.0, 1e-4, 0.05], 3000)
+    alpha[::7] = np.nan
+    length, kept = smooth.tracked_lengths(fld, pts, edges, alpha)
+    bend = geo.geodesic_alpha(fld, a, b)
+    bend[~np.isfinite(bend)] = 0.0
+    at_alpha = geo.parabola_length_rule(fld, a, b, geo.parabola_midnode(a, b, alpha))
+    at_bend = geo.parabola_length_rule(fld, a, b, geo.parabola_midnode(a, b, bend))
+    other = ~(np.abs(bend - alpha) <= smooth.ALPHA_TOL)
+    use = other & (at_bend < at_alpha)
+    assert 100 < other.sum() < 3000 and use.sum() > 100
+    assert np.array_equal(length, np.where(use, at_bend, at_alpha))
+    assert np.array_equal(kept, np.where(use, bend, alpha), equal_nan=True)
+
+
+def test_relocation_sweep_is_the_weighted_mean_of_the_unit_points_bit_for_bit():
+    # kernels.relocation_sweep against the bincounts it stands for: each vertex towards
+    # the mean of p_j + (p_i − p_j) / L over its edges (p_i where L is not finite and
+    # positive) weighed by w, unless fixed or without edges
+    rng = np.random.default_rng(41)
+    n, m = 400, 1500
+    pts = rng.uniform(-1.0, 1.0, (n, 2))
+    edges = rng.integers(0, n - 20, (m, 2))  # the last 20 vertices have no edge
+    edges = edges[edges[:, 0] != edges[:, 1]]
+    length = rng.uniform(0.3, 3.0, len(edges))
+    length[::11], length[1::13], length[2::17] = np.inf, np.nan, 0.0
+    weight = rng.uniform(0.5, 4.0, len(edges))
+    fixed = rng.random(n) < 0.1
+    new, moved = np.empty_like(pts), np.empty(n, dtype=bool)
+    kernels.relocation_sweep(pts, edges, length, weight, fixed, 0.5, new, moved)
+    i = np.concatenate([edges[:, 0], edges[:, 1]])
+    j = np.concatenate([edges[:, 1], edges[:, 0]])
+    ln, w = np.concatenate([length, length]), np.concatenate([weight, weight])
+    ok = np.isfinite(ln) & (ln > 0)
+    target = pts[j] + (pts[i] - pts[j]) / np.where(ok, ln, 1.0)[:, None]
+    target[~ok] = pts[i[~ok]]
+    count = np.bincount(i, minlength=n)
+    wsum = np.bincount(i, w, minlength=n)
+    sums = np.column_stack([np.bincount(i, w * target[:, k], minlength=n) for k in range(2)])
+    avg = sums / np.maximum(wsum, 1e-300)[:, None]
+    move = np.where(fixed[:, None] | (count[:, None] == 0), 0.0, 0.5 * (avg - pts))
+    assert np.array_equal(new, pts + move)
+    assert np.array_equal(moved, np.abs(move).max(axis=1) > 0)
+    assert 300 < moved.sum() < n - 20 and not moved[fixed].any() and not moved[-20:].any()
