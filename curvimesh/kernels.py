@@ -1469,9 +1469,9 @@ def tracked_lengths(fn, fd, pts, edges, alpha, tol, t, w, length, kept):
 def relocation_sweep(pts, edges, length, weight, fixed, relax, new, moved):
     """One sweep of :func:`curvimesh.smooth.relocate`'s moves, as its numpy did them (the
     same operations in the same order, hence the same bits): for each edge a–b of
-    ``edges`` ``(E, 2)`` and metric length L = ``length[e]`` (1 where L is not finite and
-    positive), the targets p_b + (p_a − p_b)/L of a and p_a + (p_b − p_a)/L of b (p_a
-    itself where L is not), weighed by ``weight[e]``; each vertex v goes to
+    ``edges`` ``(E, 2)`` of metric length L = ``length[e]``, the targets p_b + (p_a − p_b)/L
+    of a and p_a + (p_b − p_a)/L of b (each end itself where L is not finite and
+    positive), weighed by ``weight[e]``; each vertex v goes to
     p_v + ``relax`` (Σ w t / max(Σ w, 1e-300) − p_v), unless ``fixed[v]`` or it has no
     edge, into ``new`` ``(n, 2)``, and ``moved[v]`` says whether that move is finite and
     not zero. The sums run over the edges' first ends, then their second ends, each
