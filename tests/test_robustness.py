@@ -32,7 +32,7 @@ import curvimesh.adapt as pipeline
 from curvimesh.cli import main
 from curvimesh.errors import CurvimeshError, ExpressionError
 from curvimesh.expressions import parse_expression
-from curvimesh.io import read_mesh, write_mesh
+from curvimesh.io import FORMATS, read_mesh, write_mesh
 from curvimesh.mesh import Mesh, signed_areas, to_p2_straight
 from curvimesh.metric import FORMS, MAX_FILE_BYTES, TOP_KEYS, load_metric_text
 
@@ -697,7 +697,7 @@ def test_interrupt_while_writing_leaves_no_temporary_file(tmp_path, monkeypatch)
         Path(path).write_bytes(b"$MeshFormat\n2.2 0 8\n")
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(meshio, "write", half_then_interrupt)
+    monkeypatch.setitem(FORMATS, "gmsh22", half_then_interrupt)
     result = run(["curve", src, "--metric", metric, "-o", out])
     assert_error(result, 130, "interrupted")
     assert files(tmp_path) == before
@@ -730,7 +730,7 @@ def write_case(tmp_path: Path, monkeypatch, case: str) -> tuple[Path, str]:
             Path(path).write_bytes(b"$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$Nod")
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-        monkeypatch.setattr(meshio, "write", write)
+        monkeypatch.setitem(FORMATS, "gmsh22", write)
     return out, "cannot write: No space left on device"
 
 
