@@ -222,7 +222,7 @@ def _to_meshio(mesh: Mesh, groups: list[_Group]) -> meshio.Mesh:
     )
 
 
-#: Gmsh's element type numbers of the cells :func:`_groups` makes (MSH 2.2 and 4.1).
+#: Gmsh's element type numbers of the cells :func:`_groups` makes (for :func:`_write_gmsh22`).
 _GMSH_TYPES = {"vertex": 15, "line": 1, "triangle": 2, "line3": 8, "triangle6": 9}
 
 

@@ -1319,6 +1319,18 @@ def _acceleration(fn, x, y, vx, vy):
     return ax, ay
 
 
+@njit(**_JIT)
+def _bend_alpha(fd, ax, ay, bx, by):
+    """:func:`curvimesh.geodesic.geodesic_alpha` of one chord a–b (the same operations,
+    hence the same bits): the α of the parabola that bends as the geodesic does at the
+    chord's middle, −Γ(d, d)/8 projected on d × e₃ over |d|² (d = b − a; ``fd`` the
+    metric with its derivatives); NaN or inf where undefined."""
+    dx, dy = bx - ax, by - ay
+    acc_x, acc_y = _acceleration(fd, 0.5 * (ax + bx), 0.5 * (ay + by), dx, dy)
+    ox, oy = -0.125 * acc_x, -0.125 * acc_y
+    return (ox * dy + oy * (-dx)) / (dx * dx + dy * dy)
+
+
 @_row_kernel
 def accelerations(fn, x, v, out):
     """:func:`_acceleration` row by row: ẍ = −Γ(x)(v, v) ``(n, 2)`` into ``out``
@@ -1451,9 +1463,7 @@ def tracked_lengths(fn, fd, pts, edges, alpha, tol, t, w, length, kept):
         ax, ay, bx, by = pts[i, 0], pts[i, 1], pts[j, 0], pts[j, 1]
         dx, dy = bx - ax, by - ay
         cx, cy = 0.5 * (ax + bx), 0.5 * (ay + by)
-        acc_x, acc_y = _acceleration(fd, cx, cy, dx, dy)
-        ox, oy = -0.125 * acc_x, -0.125 * acc_y
-        bend = (ox * dy + oy * (-dx)) / (dx * dx + dy * dy)
+        bend = _bend_alpha(fd, ax, ay, bx, by)
         if not math.isfinite(bend):
             bend = 0.0
         a = alpha[r]
@@ -2599,9 +2609,7 @@ def best_move(
         for e in range(j):
             bx, by = others[e, 0], others[e, 1]
             dx, dy = bx - ax, by - ay
-            acc_x, acc_y = _acceleration(fd, 0.5 * (ax + bx), 0.5 * (ay + by), dx, dy)
-            ox, oy = -0.125 * acc_x, -0.125 * acc_y
-            guess = (ox * dy + oy * (-dx)) / (dx * dx + dy * dy)
+            guess = _bend_alpha(fd, ax, ay, bx, by)
             alpha = _search_guided(fn, ax, ay, bx, by, guess, grid, t, w, tol, max_iter)[0]
             optimal[c, e, 0] = 0.5 * (ax + bx) + alpha * dy
             optimal[c, e, 1] = 0.5 * (ay + by) + alpha * (-dx)
